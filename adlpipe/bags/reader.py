@@ -1,0 +1,203 @@
+"""Streaming, format-agnostic bag reading: ROS2/ROS1 MCAP (mcap decoders), ROS1 .bag and ROS2 folders/.db3
+(rosbags AnyReader). Every library failure becomes an AdlError naming the bag."""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import AdlError
+from .messages import typestore
+
+
+@dataclass
+class TopicInfo:
+    msgtype: str
+    declared: int | None  # the bag's own message count for the topic (None: the bag does not say)
+
+
+def bag_kind(path: Path) -> str:
+    if path.is_dir():
+        if not (path / "metadata.yaml").exists():
+            raise AdlError(f"{path}: folder is not a rosbag2 bag (no metadata.yaml)")
+        return "rosbag2"
+    if not path.exists():
+        raise AdlError(f"{path}: no such file")
+    if path.suffix == ".mcap":
+        return "mcap"
+    if path.suffix == ".bag":
+        return "ros1"
+    if path.suffix == ".db3":
+        if not (path.parent / "metadata.yaml").exists():
+            raise AdlError(f"{path}: a .db3 file needs the metadata.yaml of its rosbag2 folder beside it")
+        return "rosbag2"
+    raise AdlError(f"{path}: unknown bag format (expected .mcap, .bag, .db3 or a rosbag2 folder)")
+
+
+def _normalise_type(name: str) -> str:
+    """'sensor_msgs/Image' (ROS1) and 'sensor_msgs/msg/Image' (ROS2) -> 'sensor_msgs/msg/Image'."""
+    parts = name.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
+
+
+class BagSource:
+    """Opens a bag, lists its topics and streams decoded messages of chosen topics in log-time order."""
+
+    def __init__(self, path: str | Path, recover: bool = False) -> None:
+        self.path = Path(path)
+        self.kind = bag_kind(self.path)
+        self.recover = recover
+        self.lost_note = ""
+        self._topics: dict[str, TopicInfo] | None = None
+
+    # -- topics ----------------------------------------------------------------------------------------------
+    def topics(self) -> dict[str, TopicInfo]:
+        if self._topics is None:
+            try:
+                self._topics = self._mcap_topics() if self.kind == "mcap" else self._rosbags_topics()
+            except AdlError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - untrusted input: any library failure is a bad bag
+                raise AdlError(f"{self.path}: unreadable {self.kind} bag ({type(exc).__name__}: {exc})") from exc
+        return self._topics
+
+    def _mcap_topics(self) -> dict[str, TopicInfo]:
+        from mcap.reader import make_reader
+
+        with open(self.path, "rb") as f:
+            try:
+                summary = make_reader(f).get_summary()
+            except Exception as exc:  # noqa: BLE001
+                if not self.recover:
+                    raise AdlError(f"{self.path}: truncated or corrupt MCAP ({type(exc).__name__}: {exc}); "
+                                   "re-run with --recover to keep the complete chunks") from exc
+                summary = None
+        if summary is None:
+            if not self.recover:
+                raise AdlError(f"{self.path}: MCAP has no summary section (truncated?); re-run with --recover")
+            return self._scan_topics()
+        counts = summary.statistics.channel_message_counts if summary.statistics else {}
+        out = {}
+        for cid, ch in summary.channels.items():
+            schema = summary.schemas.get(ch.schema_id)
+            out[ch.topic] = TopicInfo(_normalise_type(schema.name) if schema else "?", counts.get(cid))
+        return out
+
+    def _scan_topics(self) -> dict[str, TopicInfo]:
+        """Recovery: topics of the complete records of a damaged MCAP (counts unknown, then counted)."""
+        out: dict[str, TopicInfo] = {}
+        for _schema, channel, _msg in self._stream_records():
+            if channel.topic not in out:
+                out[channel.topic] = TopicInfo("?", None)
+        return out
+
+    def _rosbags_topics(self) -> dict[str, TopicInfo]:
+        with self._any_reader() as reader:
+            out: dict[str, TopicInfo] = {}
+            for c in reader.connections:
+                prev = out.get(c.topic)
+                n = (prev.declared or 0) + c.msgcount if prev else c.msgcount
+                out[c.topic] = TopicInfo(_normalise_type(c.msgtype), n)
+            return out
+
+    def _any_reader(self):  # noqa: ANN202 - rosbags AnyReader
+        from rosbags.highlevel import AnyReader
+
+        path = self.path.parent if self.path.suffix == ".db3" else self.path
+        store = typestore(1 if self.kind == "ros1" else 2)
+        return AnyReader([path], default_typestore=store)
+
+    # -- messages --------------------------------------------------------------------------------------------
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, object]]:
+        """(topic, log_time_ns, decoded message) for the given topics, in log-time order."""
+        try:
+            if self.kind == "mcap":
+                yield from self._mcap_messages(topics)
+            else:
+                yield from self._rosbags_messages(topics)
+        except AdlError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - untrusted input
+            raise AdlError(f"{self.path}: unreadable {self.kind} bag while reading messages "
+                           f"({type(exc).__name__}: {exc})") from exc
+
+    def _decoders(self) -> list:
+        from mcap_ros1.decoder import DecoderFactory as Ros1Decoder
+        from mcap_ros2.decoder import DecoderFactory as Ros2Decoder
+
+        return [Ros2Decoder(), Ros1Decoder()]
+
+    def _decode(self, schema, channel, message, cache: dict) -> object:  # noqa: ANN001
+        key = channel.id
+        if key not in cache:
+            decoder = None
+            for factory in self._decoders():
+                decoder = factory.decoder_for(channel.message_encoding, schema)
+                if decoder is not None:
+                    break
+            if decoder is None:
+                name = schema.name if schema else "?"
+                raise AdlError(f"{self.path}: topic {channel.topic}: no decoder for message type {name} "
+                               f"(encoding {channel.message_encoding!r})")
+            cache[key] = decoder
+        return cache[key](message.data)
+
+    def _mcap_messages(self, topics: list[str]) -> Iterator[tuple[str, int, object]]:
+        cache: dict = {}
+        if self.recover and self._damaged():
+            wanted = set(topics)
+            for schema, channel, message in self._stream_records():
+                if channel.topic in wanted:
+                    yield channel.topic, message.log_time, self._decode(schema, channel, message, cache)
+            return
+        from mcap.reader import make_reader
+
+        with open(self.path, "rb") as f:
+            reader = make_reader(f)
+            for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
+                yield channel.topic, message.log_time, self._decode(schema, channel, message, cache)
+
+    def _damaged(self) -> bool:
+        from mcap.reader import make_reader
+
+        try:
+            with open(self.path, "rb") as f:
+                return make_reader(f).get_summary() is None
+        except Exception:  # noqa: BLE001
+            return True
+
+    def _stream_records(self) -> Iterator[tuple]:
+        """Complete records of a damaged MCAP, read front to back; stops at the first broken one."""
+        from mcap.records import Channel, Message, Schema
+        from mcap.stream_reader import StreamReader
+
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        n_ok = 0
+        with open(self.path, "rb") as f:
+            records = StreamReader(f, skip_magic=False).records
+            while True:
+                try:
+                    rec = next(records)
+                except StopIteration:
+                    break
+                except (Exception, struct.error) as exc:  # noqa: BLE001 - the damaged tail
+                    self.lost_note = (f"stopped at damaged data after {n_ok} complete messages "
+                                      f"({type(exc).__name__}); the rest of the file is lost")
+                    break
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message) and rec.channel_id in channels:
+                    n_ok += 1
+                    ch = channels[rec.channel_id]
+                    yield schemas.get(ch.schema_id), ch, rec
+
+    def _rosbags_messages(self, topics: list[str]) -> Iterator[tuple[str, int, object]]:
+        with self._any_reader() as reader:
+            conns = [c for c in reader.connections if c.topic in set(topics)]
+            for conn, t, raw in reader.messages(connections=conns):
+                yield conn.topic, t, reader.deserialize(raw, conn.msgtype)

@@ -1,0 +1,95 @@
+"""Rigid transforms, a small TF buffer, trajectory resampling and pinhole projection."""
+
+from __future__ import annotations
+
+import bisect
+
+import numpy as np
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """wxyz quaternion -> 3x3 rotation matrix."""
+    w, x, y, z = np.asarray(q, float) / max(np.linalg.norm(q), 1e-12)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def pose_matrix(pos: np.ndarray, quat_wxyz: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(quat_wxyz)
+    T[:3, 3] = pos
+    return T
+
+
+class TfBuffer:
+    """parent->child transforms over time (static ones hold always); lookups compose the chain to a root frame."""
+
+    def __init__(self) -> None:
+        self.parent: dict[str, str] = {}
+        self.static: dict[str, np.ndarray] = {}
+        self.times: dict[str, list[float]] = {}
+        self.poses: dict[str, list[np.ndarray]] = {}
+
+    def add(self, parent: str, child: str, t: float, T: np.ndarray, static: bool) -> None:
+        self.parent[child] = parent
+        if static:
+            self.static[child] = T
+            return
+        ts = self.times.setdefault(child, [])
+        if ts and t < ts[-1]:  # out-of-order stamps: keep the list sorted
+            i = bisect.bisect_right(ts, t)
+            ts.insert(i, t)
+            self.poses[child].insert(i, T)
+        else:
+            ts.append(t)
+            self.poses.setdefault(child, []).append(T)
+
+    def _at(self, child: str, t: float) -> np.ndarray:
+        if child in self.static:
+            return self.static[child]
+        ts, ps = self.times[child], self.poses[child]
+        i = bisect.bisect_right(ts, t) - 1
+        return ps[max(i, 0)]
+
+    def lookup(self, target: str, source: str, t: float) -> np.ndarray | None:
+        """Pose of `source` in `target` at time t (latest sample at or before t), or None if not connected."""
+        T = np.eye(4)
+        frame = source
+        for _ in range(64):
+            if frame == target:
+                return T
+            if frame not in self.parent:
+                return None
+            T = self._at(frame, t) @ T
+            frame = self.parent[frame]
+        return None
+
+    def first_time(self, child: str) -> float | None:
+        return self.times[child][0] if self.times.get(child) else None
+
+
+def resample(times: np.ndarray, values: np.ndarray, t_start: float, t_end: float, n: int) -> np.ndarray:
+    """n samples evenly spaced in time over [t_start, t_end], linearly interpolated per dimension."""
+    tq = np.linspace(t_start, t_end, n)
+    return np.stack([np.interp(tq, times, values[:, k]) for k in range(values.shape[1])], axis=1)
+
+
+def project(points: np.ndarray, K: np.ndarray, T_base_camera: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (u, v) of base-frame points seen by a camera at T_base_camera (ROS optical frame)."""
+    T = np.linalg.inv(T_base_camera)
+    pc = points @ T[:3, :3].T + T[:3, 3]
+    uv = pc @ K.T
+    return uv[:, :2] / uv[:, 2:3]
+
+
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """Intrinsics of an image resized by (sx, sy), pixel centres at integer coordinates."""
+    K2 = K.copy()
+    K2[0, 0] *= sx
+    K2[1, 1] *= sy
+    K2[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K2[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return K2

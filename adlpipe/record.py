@@ -1,0 +1,154 @@
+"""Record demonstrations of the 10 ADL tasks in MuJoCo as ROS bags (one episode per bag).
+
+    python -m adlpipe.record --episodes 3 --out data/bags            # 3 episodes of each task, ROS2 MCAP
+    python -m adlpipe.record --format bag --image-format jpeg ...    # ROS1 .bag with CompressedImage
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .bags import messages as M
+from .bags.writer import FORMATS, BagWriter
+from .errors import AdlError, run_cli
+from .topics import TopicMap
+
+BASE_TIME_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z; episode k starts k*100 s later (deterministic bags)
+CAMERA_FRAME = "camera_color_optical_frame"
+MAX_ATTEMPTS = 8  # a demonstration whose success predicate fails is re-sampled, as a human operator would redo it
+
+
+def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    import mujoco
+
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R).reshape(9))
+    return q
+
+
+def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format: str, episode_index: int,
+                      topics: TopicMap = TopicMap()) -> Path:  # noqa: B008 - frozen dataclass
+    """Write one recorded episode (adlpipe.sim.episode.Streams) as a bag."""
+    t0 = BASE_TIME_NS + episode_index * 100 * 10**9
+    ns = lambda t: t0 + int(round(t * 1e9))  # noqa: E731
+    w = BagWriter(path, fmt)
+    f = w.msgs
+    try:
+        events: list[tuple[int, int, str, str, object]] = []  # (t_ns, order, topic, type, builder)
+        cam_q = _quat_from_matrix(st.T_base_camera[:3, :3])
+        statics = [(topics.base_frame, CAMERA_FRAME, st.T_base_camera[:3, 3], cam_q)]
+        for name, (x, y, z, yaw) in st.spec.poses.items():
+            if name == "manikin" or not any(name in o for _, o in st.objects[:1]):
+                statics.append((topics.base_frame, name, np.array([x, y, z]),
+                                np.array([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)])))
+        events.append((ns(0), 0, topics.tf_static, M.TF, lambda: f.tf(ns(0), statics)))
+        if topics.task:
+            events.append((ns(0), 1, topics.task, M.STRING, lambda: f.string(st.task)))
+        if topics.affordance and st.affordance is not None:
+            events.append((ns(0), 2, topics.affordance, M.IMAGE,
+                           lambda: f.image(ns(0), CAMERA_FRAME, st.affordance.astype(np.float32), "32FC1")))
+        for t, rgb, depth in st.camera:
+            tn = ns(t)
+            events.append((tn, 3, topics.camera_info, M.CAMERA_INFO,
+                           lambda tn=tn: f.camera_info(tn, CAMERA_FRAME, st.K, st.width, st.height)))
+            if image_format == "raw":
+                events.append((tn, 4, topics.image, M.IMAGE,
+                               lambda tn=tn, rgb=rgb: f.image(tn, CAMERA_FRAME, rgb, "rgb8")))
+            else:
+                events.append((tn, 4, topics.image, M.COMPRESSED,
+                               lambda tn=tn, rgb=rgb: f.compressed(tn, CAMERA_FRAME, rgb, image_format)))
+            if topics.depth:
+                if depth_format == "16UC1":
+                    d = np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16)
+                else:
+                    d = depth.astype(np.float32)
+                events.append((tn, 5, topics.depth, M.IMAGE,
+                               lambda tn=tn, d=d: f.image(tn, CAMERA_FRAME, d, depth_format)))
+        for t, objs in st.objects:
+            tn = ns(t)
+            tfs = [(topics.base_frame, n, p, q) for n, (p, q) in objs.items()]
+            if tfs:
+                events.append((tn, 6, topics.tf, M.TF, lambda tn=tn, tfs=tfs: f.tf(tn, tfs)))
+        for t, p, q in st.ee:
+            tn = ns(t)
+            events.append((tn, 7, topics.tf, M.TF,
+                           lambda tn=tn, p=p, q=q: f.tf(tn, [(topics.base_frame, topics.ee_frame, p, q)])))
+        if topics.joints:
+            for t, qp, qv in st.joints:
+                tn = ns(t)
+                events.append((tn, 8, topics.joints, M.JOINT_STATE,
+                               lambda tn=tn, qp=qp, qv=qv: f.joint_state(tn, st.joint_names, qp, qv)))
+        events.sort(key=lambda e: (e[0], e[1]))
+        for tn, _, topic, msgtype, build in events:
+            w.write(topic, msgtype, tn, build())
+        return w.close()
+    except BaseException:
+        w.abort()
+        raise
+
+
+def _record_one(job: tuple) -> tuple[str, int, bool]:
+    from .sim.episode import record_demo
+    from .sim.tasks import TASK_NAMES
+
+    task, idx, out, seed, fmt, image_format, depth_format, size, camera_hz = job
+    ti = TASK_NAMES.index(task)
+    for attempt in range(MAX_ATTEMPTS):
+        rng = np.random.default_rng([seed, ti, idx, attempt])
+        st = record_demo(task, rng, size, size, camera_hz=camera_hz)
+        if st.success:
+            break
+    path = Path(out) / f"{task.replace(' ', '_')}_{idx:04d}{FORMATS[fmt]}"
+    write_episode_bag(st, path, fmt, image_format, depth_format, episode_index=ti * 10000 + idx)
+    return str(path), attempt + 1, st.success
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    from .sim.tasks import TASK_NAMES
+
+    p = argparse.ArgumentParser(prog="python -m adlpipe.record", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--episodes", type=int, default=3, help="episodes per task (default 3)")
+    p.add_argument("--out", required=True, type=Path, help="output folder for the bags")
+    p.add_argument("--tasks", nargs="+", default=TASK_NAMES, metavar="TASK",
+                   help="task names (default: all 10), e.g. 'wipe the nose'")
+    p.add_argument("--format", choices=sorted(FORMATS), default="mcap",
+                   help="mcap: ROS2 MCAP file (default); bag: ROS1 .bag; db3: ROS2 sqlite3 bag folder")
+    p.add_argument("--image-format", choices=["raw", "jpeg", "png"], default="raw",
+                   help="raw: sensor_msgs/Image rgb8 (default); jpeg/png: sensor_msgs/CompressedImage")
+    p.add_argument("--depth-format", choices=["32FC1", "16UC1"], default="32FC1")
+    p.add_argument("--size", type=int, default=224, help="camera width and height in pixels (default 224)")
+    p.add_argument("--camera-hz", type=float, default=15.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=2)
+    args = p.parse_args(argv)
+    bad = [t for t in args.tasks if t not in TASK_NAMES]
+    if bad:
+        raise AdlError(f"unknown task(s) {bad}; tasks are {TASK_NAMES}")
+    if args.episodes < 1 or args.size < 16:
+        raise AdlError("--episodes must be >= 1 and --size >= 16")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    jobs = [(t, i, str(args.out), args.seed, args.format, args.image_format, args.depth_format, args.size,
+             args.camera_hz) for t in args.tasks for i in range(args.episodes)]
+    failed = 0
+    with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
+        for _path, _attempts, ok in tqdm(pool.map(_record_one, jobs), total=len(jobs), desc="record",
+                                         unit="ep", file=sys.stderr, disable=None):
+            failed += not ok
+    print(f"recorded {len(jobs)} episodes to {args.out} ({failed} without a successful demo)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli("adlpipe.record", main))

@@ -1,0 +1,139 @@
+"""The HDF5 dataset schema, written down once (docs/hdf5_schema.md describes the same layout).
+
+    /                          attrs: format_version, n_waypoints, image_size
+    /episodes/<name>/          one group per bag; <name> = "<task_slug>-<sha256[:16]>"
+        attrs: task, source_path, source_sha256, source_format, duration_s, stamp0_ns, base_frame,
+               camera_frame, has_depth, has_affordance
+        rgb          (H, W, 3) uint8     first camera frame, resized to image_size
+        depth        (H, W)    float32   metres, NaN = no return (only if has_depth)
+        affordance   (H, W)    float32   [0, 1] Gaussian blobs (zeros if the bag had none)
+        traj3d       (N, 3)    float32   end-effector path in base_frame, metres, N waypoints evenly in time
+        traj2d       (N, 2)    float32   traj3d projected into rgb, pixels (u right, v down)
+        K            (3, 3)    float64   intrinsics of the stored rgb
+        T_base_camera (4, 4)   float64   camera optical frame pose in base_frame
+        objects      (M, 7)    float64   initial pose (x y z qw qx qy qz) in base_frame; attr names
+        series/ee_t  (P,) float64 s from the first image; series/ee_pos (P, 3) base_frame
+        series/joint_t (Q,) float64; series/joint_pos (Q, J) float64; attr joint_names
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import h5py
+import numpy as np
+
+from .errors import AdlError
+
+FORMAT_VERSION = 1
+EPISODES = "episodes"
+
+
+@dataclass
+class Episode:
+    task: str
+    source_path: str
+    source_sha256: str
+    source_format: str
+    duration_s: float
+    stamp0_ns: int
+    base_frame: str
+    camera_frame: str
+    rgb: np.ndarray
+    affordance: np.ndarray
+    traj3d: np.ndarray
+    traj2d: np.ndarray
+    K: np.ndarray
+    T_base_camera: np.ndarray
+    depth: np.ndarray | None = None
+    has_affordance: bool = True
+    object_names: list[str] = field(default_factory=list)
+    objects: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
+    ee_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    ee_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    joint_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    joint_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    joint_names: list[str] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return episode_name(self.task, self.source_sha256)
+
+
+def safe_name(text: str, limit: int = 40) -> str:
+    """An HDF5-safe name component: letters, digits and '_' only (no '/', '.', or path tricks)."""
+    return (re.sub(r"[^A-Za-z0-9_]+", "_", text).strip("_") or "unnamed")[:limit]
+
+
+def episode_name(task: str, sha256: str) -> str:
+    return f"{safe_name(task)}-{sha256[:16]}"
+
+
+def create_file(f: h5py.File, n_waypoints: int, image_size: int) -> None:
+    f.attrs["format_version"] = FORMAT_VERSION
+    f.attrs["n_waypoints"] = n_waypoints
+    f.attrs["image_size"] = image_size
+    f.require_group(EPISODES)
+
+
+def check_file(f: h5py.File, path: str, n_waypoints: int | None = None, image_size: int | None = None) -> None:
+    """Refuse files of another format version or with other waypoint/image settings than asked for."""
+    version = f.attrs.get("format_version")
+    if version != FORMAT_VERSION or EPISODES not in f:
+        raise AdlError(f"{path}: not an adlpipe dataset of format version {FORMAT_VERSION} (found {version})")
+    for key, want in (("n_waypoints", n_waypoints), ("image_size", image_size)):
+        if want is not None and int(f.attrs[key]) != want:
+            raise AdlError(f"{path}: file has {key}={int(f.attrs[key])}, asked for {want}; use a new output file")
+
+
+def write_episode(f: h5py.File, ep: Episode) -> None:
+    g = f[EPISODES].create_group(ep.name)
+    for key in ("task", "source_path", "source_sha256", "source_format", "base_frame", "camera_frame"):
+        g.attrs[key] = getattr(ep, key)
+    g.attrs["duration_s"] = float(ep.duration_s)
+    g.attrs["stamp0_ns"] = int(ep.stamp0_ns)
+    g.attrs["has_depth"] = ep.depth is not None
+    g.attrs["has_affordance"] = bool(ep.has_affordance)
+    img = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+    g.create_dataset("rgb", data=ep.rgb.astype(np.uint8), **img)
+    g.create_dataset("affordance", data=ep.affordance.astype(np.float32), **img)
+    if ep.depth is not None:
+        g.create_dataset("depth", data=ep.depth.astype(np.float32), **img)
+    g.create_dataset("traj3d", data=ep.traj3d.astype(np.float32))
+    g.create_dataset("traj2d", data=ep.traj2d.astype(np.float32))
+    g.create_dataset("K", data=ep.K.astype(np.float64))
+    g.create_dataset("T_base_camera", data=ep.T_base_camera.astype(np.float64))
+    obj = g.create_dataset("objects", data=ep.objects.astype(np.float64).reshape(-1, 7))
+    obj.attrs["names"] = [str(n) for n in ep.object_names]
+    s = g.create_group("series")
+    s.create_dataset("ee_t", data=ep.ee_t.astype(np.float64))
+    s.create_dataset("ee_pos", data=ep.ee_pos.astype(np.float64))
+    s.create_dataset("joint_t", data=ep.joint_t.astype(np.float64))
+    jp = s.create_dataset("joint_pos", data=ep.joint_pos.astype(np.float64))
+    jp.attrs["joint_names"] = [str(n) for n in ep.joint_names]
+
+
+def read_episode(f: h5py.File, name: str) -> Episode:
+    g = f[EPISODES][name]
+    a = g.attrs
+    s = g["series"]
+    return Episode(
+        task=str(a["task"]), source_path=str(a["source_path"]), source_sha256=str(a["source_sha256"]),
+        source_format=str(a["source_format"]), duration_s=float(a["duration_s"]), stamp0_ns=int(a["stamp0_ns"]),
+        base_frame=str(a["base_frame"]), camera_frame=str(a["camera_frame"]),
+        rgb=g["rgb"][()], affordance=g["affordance"][()], traj3d=g["traj3d"][()], traj2d=g["traj2d"][()],
+        K=g["K"][()], T_base_camera=g["T_base_camera"][()],
+        depth=g["depth"][()] if "depth" in g else None, has_affordance=bool(a["has_affordance"]),
+        object_names=[str(n) for n in g["objects"].attrs["names"]], objects=g["objects"][()],
+        ee_t=s["ee_t"][()], ee_pos=s["ee_pos"][()], joint_t=s["joint_t"][()], joint_pos=s["joint_pos"][()],
+        joint_names=[str(n) for n in s["joint_pos"].attrs["joint_names"]],
+    )
+
+
+def episode_names(f: h5py.File) -> list[str]:
+    return sorted(f[EPISODES].keys())
+
+
+def episode_shas(f: h5py.File) -> set[str]:
+    return {str(g.attrs["source_sha256"]) for g in f[EPISODES].values()}

@@ -1,0 +1,150 @@
+"""Arm control: damped-least-squares IK on the tcp (position + fixed downward orientation) feeding the joint PD
+position actuators, plus the grasp rule shared by the demonstrator and the replay of predicted trajectories."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import mujoco
+import numpy as np
+
+from .world import ARM_JOINTS, FINGER_JOINTS, GRASPABLE, HOME_Q, HOME_TCP
+
+GRASP_RADIUS = 0.035  # tcp within this distance of an object's grasp site closes the gripper on it
+TARGET_ROT = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # hand z down, x along world x
+
+
+class ArmController:
+    """Tracks tcp targets with the 7-DoF arm; closes/opens the gripper with a weld that holds the object."""
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        self.m, self.d = model, data
+        self.qadr = np.array([model.jnt_qposadr[model.joint(j).id] for j in ARM_JOINTS])
+        self.dadr = np.array([model.jnt_dofadr[model.joint(j).id] for j in ARM_JOINTS])
+        self.tcp = model.site("tcp").id
+        self.hand = model.body("hand").id
+        self.q_des = HOME_Q.copy()
+        self.held: str | None = None
+        self.released: set[str] = set()
+        self._jacp = np.zeros((3, model.nv))
+        self._jacr = np.zeros((3, model.nv))
+        self._grasp_sites = {
+            model.site(i).name: i for i in range(model.nsite) if model.site(i).name.endswith("_grasp")
+        }
+        self._prev_dist: dict[str, float] = {}
+
+    def reset_home(self, tcp_target: np.ndarray = HOME_TCP) -> None:
+        """Put the arm (kinematically) at the posture whose tcp is at tcp_target, hand pointing down."""
+        m, d = self.m, self.d
+        d.qpos[self.qadr] = HOME_Q
+        for _ in range(300):
+            mujoco.mj_forward(m, d)
+            self.set_target(tcp_target)
+            d.qpos[self.qadr] = self.q_des
+        mujoco.mj_forward(m, d)
+        d.qvel[:] = 0.0
+        d.ctrl[: len(ARM_JOINTS)] = d.qpos[self.qadr]
+        d.ctrl[len(ARM_JOINTS):] = 0.04
+
+    @property
+    def tcp_pos(self) -> np.ndarray:
+        return self.d.site_xpos[self.tcp].copy()
+
+    def set_target(self, target: np.ndarray) -> None:
+        """One resolved-rate IK step towards the tcp target; writes the joint position commands."""
+        m, d = self.m, self.d
+        mujoco.mj_jacSite(m, d, self._jacp, self._jacr, self.tcp)
+        J = np.vstack([self._jacp[:, self.dadr], self._jacr[:, self.dadr]])
+        err_p = target - d.site_xpos[self.tcp]
+        R = d.site_xmat[self.tcp].reshape(3, 3)
+        err_r = 0.5 * (np.cross(R[:, 0], TARGET_ROT[:, 0]) + np.cross(R[:, 1], TARGET_ROT[:, 1])
+                       + np.cross(R[:, 2], TARGET_ROT[:, 2]))
+        err = np.concatenate([np.clip(err_p, -0.05, 0.05), 0.5 * err_r])
+        lam = 1e-2
+        JJt = J @ J.T + lam * np.eye(6)
+        J_pinv = J.T @ np.linalg.solve(JJt, np.eye(6))
+        q = d.qpos[self.qadr]
+        # Null-space pull towards home keeps the redundant DoF (elbow) from drifting.
+        null = (np.eye(7) - J_pinv @ J) @ (0.05 * (HOME_Q - q))
+        self.q_des = q + J_pinv @ err + null
+        d.ctrl[: len(ARM_JOINTS)] = self.q_des
+
+    # -- gripper -------------------------------------------------------------------------------------------
+    def _weld_id(self, obj: str) -> int:
+        return self.m.equality(f"grasp_{obj}").id
+
+    def grasp(self, obj: str) -> None:
+        """Close the fingers and weld the object to the hand at its current relative pose."""
+        m, d = self.m, self.d
+        b = m.body(obj).id
+        R1 = d.xmat[self.hand].reshape(3, 3)
+        relpos = R1.T @ (d.xpos[b] - d.xpos[self.hand])
+        q1inv = np.zeros(4)
+        mujoco.mju_negQuat(q1inv, d.xquat[self.hand])
+        relquat = np.zeros(4)
+        mujoco.mju_mulQuat(relquat, q1inv, d.xquat[b])
+        eq = self._weld_id(obj)
+        m.eq_data[eq, 0:3] = 0.0
+        m.eq_data[eq, 3:6] = relpos
+        m.eq_data[eq, 6:10] = relquat
+        d.eq_active[eq] = 1
+        d.ctrl[len(ARM_JOINTS):] = 0.0
+        self.held = obj
+
+    def release(self) -> None:
+        if self.held is not None:
+            self.d.eq_active[self._weld_id(self.held)] = 0
+            self.released.add(self.held)
+            self.held = None
+        self.d.ctrl[len(ARM_JOINTS):] = 0.04
+
+    def auto_grasp(self) -> None:
+        """The grasp rule: an open gripper takes an unreleased object once its tcp is within GRASP_RADIUS of the
+        object's grasp site and has stopped getting closer (so a tcp still descending onto it does not grasp early).
+        """
+        if self.held is not None:
+            return
+        for obj in GRASPABLE:
+            if obj in self.released or f"{obj}_grasp" not in self._grasp_sites:
+                continue
+            dist = float(np.linalg.norm(self.d.site_xpos[self._grasp_sites[f"{obj}_grasp"]] - self.tcp_pos))
+            prev = self._prev_dist.get(obj, np.inf)
+            self._prev_dist[obj] = dist
+            if dist < GRASP_RADIUS and dist >= prev - 1e-5:
+                self.grasp(obj)
+                return
+
+    def finger_qpos(self) -> np.ndarray:
+        return np.array([self.d.qpos[self.m.jnt_qposadr[self.m.joint(j).id]] for j in FINGER_JOINTS])
+
+
+def execute_path(
+    ctrl: ArmController,
+    path_fn: Callable[[float], np.ndarray],
+    duration: float,
+    on_step: Callable[[float], None] | None = None,
+    settle: float = 0.4,
+    control_hz: float = 250.0,
+) -> None:
+    """Track tcp(t) for `duration` seconds, release what is held at the end and let the scene settle.
+
+    on_step(t) is called after every physics step (recording, success bookkeeping).
+    """
+    m, d = ctrl.m, ctrl.d
+    ctrl.d.ctrl[len(ARM_JOINTS):] = 0.04  # start open
+    n_sub = max(1, round(1.0 / (control_hz * m.opt.timestep)))
+    n_steps = int(round((duration + settle) / m.opt.timestep))
+    t0 = d.time
+    for i in range(n_steps):
+        t = d.time - t0
+        if i % n_sub == 0:
+            if t <= duration:
+                ctrl.set_target(path_fn(min(t, duration)))
+                ctrl.auto_grasp()
+            else:
+                if ctrl.held is not None:
+                    ctrl.release()
+                ctrl.set_target(path_fn(duration))
+        mujoco.mj_step(m, d)
+        if on_step is not None:
+            on_step(d.time - t0)

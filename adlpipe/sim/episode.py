@@ -1,0 +1,189 @@
+"""Runs one episode in the ADL world: the demonstrator (recording sensor streams) or a replayed trajectory."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from ..geometry import project
+from .controller import ArmController, execute_path
+from .tasks import TASKS, Scene, SuccessMonitor, Task
+from .world import ARM_JOINTS, FINGER_JOINTS, HOME_TCP, SceneSpec, build_mjcf
+
+SPEED = 0.30  # m/s of the demonstrator's tcp between keypoints
+MIN_SEGMENT_S = 0.25
+
+
+def make_scene(spec: SceneSpec, width: int = 224, height: int = 224) -> tuple[ArmController, Scene]:
+    model = mujoco.MjModel.from_xml_string(build_mjcf(spec, width, height))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    ctrl = ArmController(model, data)
+    ctrl.reset_home()
+    return ctrl, Scene(model, data, spec)
+
+
+def _min_jerk(s: float) -> float:
+    return 10 * s**3 - 15 * s**4 + 6 * s**5
+
+
+def keypoint_path(start: np.ndarray, keypoints: list[tuple[np.ndarray, float]]) -> tuple[Callable, float]:
+    """A smooth path through keypoints (min-jerk per segment, dwelling where asked) and its duration."""
+    knots = [(0.0, start, start)]
+    t = 0.0
+    prev = start
+    for p, dwell in keypoints:
+        seg = max(MIN_SEGMENT_S, float(np.linalg.norm(p - prev)) / SPEED)
+        knots.append((t + seg, prev, p))
+        t += seg
+        if dwell > 0:
+            knots.append((t + dwell, p, p))
+            t += dwell
+        prev = p
+    times = np.array([k[0] for k in knots])
+
+    def fn(tq: float) -> np.ndarray:
+        i = int(np.searchsorted(times, tq, side="left"))
+        if i == 0:
+            return start.copy()
+        if i >= len(knots):
+            return knots[-1][2].copy()
+        t_end, a, b = knots[i]
+        t_beg = times[i - 1]
+        s = _min_jerk(np.clip((tq - t_beg) / max(t_end - t_beg, 1e-9), 0.0, 1.0))
+        return a + s * (b - a)
+
+    return fn, t
+
+
+def waypoint_path(waypoints: np.ndarray, duration: float) -> Callable:
+    """Linear interpolation of N waypoints spread evenly over `duration` (how a predicted trajectory runs)."""
+    ts = np.linspace(0.0, duration, len(waypoints))
+
+    def fn(tq: float) -> np.ndarray:
+        return np.array([np.interp(tq, ts, waypoints[:, k]) for k in range(3)])
+
+    return fn
+
+
+@dataclass
+class Streams:
+    """The sensor streams of one episode, at their own rates, stamped in seconds from the episode start."""
+
+    task: str
+    spec: SceneSpec
+    width: int
+    height: int
+    K: np.ndarray
+    T_base_camera: np.ndarray  # camera optical frame pose in base_link (4x4)
+    camera: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)  # (t, rgb, depth m)
+    joints: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)  # (t, pos, vel)
+    ee: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)  # (t, pos, quat wxyz)
+    objects: list[tuple[float, dict[str, tuple[np.ndarray, np.ndarray]]]] = field(default_factory=list)
+    affordance: np.ndarray | None = None
+    joint_names: list[str] = field(default_factory=lambda: ARM_JOINTS + FINGER_JOINTS)
+    success: bool = False
+    duration: float = 0.0
+
+
+def camera_intrinsics(model: mujoco.MjModel, width: int, height: int) -> np.ndarray:
+    fovy = np.deg2rad(model.cam_fovy[model.camera("rgbd").id])
+    f = 0.5 * height / np.tan(fovy / 2)
+    return np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
+
+
+def camera_pose(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+    """Pose of the ROS optical frame (x right, y down, z forward) in base_link."""
+    cid = model.camera("rgbd").id
+    R_mj = data.cam_xmat[cid].reshape(3, 3)  # MuJoCo camera: x right, y up, looks along -z
+    T = np.eye(4)
+    T[:3, :3] = R_mj @ np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = data.cam_xpos[cid]
+    return T
+
+
+def affordance_map(points_uv: np.ndarray, width: int, height: int, sigma: float) -> np.ndarray:
+    """2D Gaussian blobs (peak 1) on the pixels the action touches."""
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+    out = np.zeros((height, width), np.float32)
+    for u, v in points_uv:
+        out = np.maximum(out, np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma**2)))
+    return out
+
+
+def touched_points(task: Task, scene: Scene) -> np.ndarray:
+    """The 3D points the action touches: where it grasps/contacts and where it puts things or acts."""
+    if task.touches:  # tool tasks: the parts of the manikin (or bowl) the tool tip touches
+        return np.array([t(scene) for t, _ in task.touches])
+    # object tasks: where the gripper/broom meets the object and where the object is put (the dwell keypoints)
+    return np.array([p for p, dwell in task.plan(scene) if dwell > 0])
+
+
+def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, height: int = 224,
+                camera_hz: float = 15.0, joint_hz: float = 100.0, tf_hz: float = 50.0) -> Streams:
+    """Sample a scene, run the scripted demonstrator and record every stream (renders RGB-D at camera_hz)."""
+    task = TASKS[task_name]
+    spec = task.sample(rng)
+    ctrl, scene = make_scene(spec, width, height)
+    m, d = ctrl.m, ctrl.d
+    keypoints = task.tcp_keypoints(scene)
+    path, duration = keypoint_path(HOME_TCP.copy(), keypoints)
+    K = camera_intrinsics(m, width, height)
+    T_bc = camera_pose(m, d)
+    st = Streams(task_name, spec, width, height, K, T_bc, duration=duration)
+    tip_pts = touched_points(task, scene)
+    st.affordance = affordance_map(project(tip_pts, K, T_bc), width, height, sigma=0.03 * width)
+    renderer = mujoco.Renderer(m, height, width)
+    monitor = SuccessMonitor(task, scene)
+    qadr = [m.jnt_qposadr[m.joint(j).id] for j in st.joint_names]
+    vadr = [m.jnt_dofadr[m.joint(j).id] for j in st.joint_names]
+    obj_names = [n for n in spec.poses if n != "manikin"]
+    next_t = {"cam": 0.0, "joint": 0.0, "tf": 0.0}
+
+    def on_step(t: float) -> None:
+        monitor.step()
+        if t + 1e-9 >= next_t["joint"]:
+            st.joints.append((t, d.qpos[qadr].copy(), d.qvel[vadr].copy()))
+            next_t["joint"] += 1.0 / joint_hz
+        if t + 1e-9 >= next_t["tf"]:
+            q = np.zeros(4)
+            mujoco.mju_mat2Quat(q, d.site_xmat[ctrl.tcp])
+            st.ee.append((t, ctrl.tcp_pos, q))
+            next_t["tf"] += 1.0 / tf_hz
+        if t + 1e-9 >= next_t["cam"]:
+            renderer.update_scene(d, camera="rgbd")
+            rgb = renderer.render().copy()
+            renderer.enable_depth_rendering()
+            renderer.update_scene(d, camera="rgbd")
+            depth = renderer.render().copy()
+            renderer.disable_depth_rendering()
+            st.camera.append((t, rgb, depth))
+            st.objects.append((t, {n: (d.xpos[m.body(n).id].copy(), d.xquat[m.body(n).id].copy())
+                                   for n in obj_names}))
+            next_t["cam"] += 1.0 / camera_hz
+
+    on_step(0.0)
+    execute_path(ctrl, path, duration, on_step=on_step)
+    renderer.close()
+    st.success = monitor.success()
+    return st
+
+
+def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -> tuple[bool, np.ndarray]:
+    """Execute a tcp trajectory open loop in the scene rebuilt from `spec`; returns (success, tcp path)."""
+    task = TASKS[spec.task]
+    ctrl, scene = make_scene(spec, 64, 64)
+    monitor = SuccessMonitor(task, scene)
+    path: list[np.ndarray] = []
+
+    def on_step(t: float) -> None:
+        monitor.step()
+        path.append(ctrl.tcp_pos)
+
+    # Start where the trajectory starts: the arm moves there from home first, like the demonstrator's start.
+    fn = waypoint_path(np.asarray(waypoints, float), duration)
+    execute_path(ctrl, fn, duration, on_step=on_step)
+    return monitor.success(), np.array(path)

@@ -1,0 +1,52 @@
+"""The topic map: which topic/frame of a bag carries which input. Defaults match `adlpipe.record`; users remap
+them for their robot with a YAML file (`--config topics.yaml`, same keys)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import yaml
+
+from .errors import AdlError
+
+
+@dataclass(frozen=True)
+class TopicMap:
+    image: str = "/camera/color/image_raw"  # sensor_msgs/Image or sensor_msgs/CompressedImage
+    depth: str | None = "/camera/depth/image_raw"  # optional (null: no depth)
+    camera_info: str = "/camera/color/camera_info"
+    affordance: str | None = "/adl/affordance"  # 32FC1 image; optional (null: no affordance map)
+    joints: str | None = "/joint_states"
+    task: str | None = "/adl/task"  # std_msgs/String; optional: --task names it for bags without one
+    tf: str = "/tf"
+    tf_static: str = "/tf_static"
+    base_frame: str = "base_link"
+    ee_frame: str = "ee_link"
+    sync_tolerance_s: float = 0.05  # depth/affordance/ee matched to the first image within this
+    trajectory_end_s: float | None = None  # seconds after the first image; null: to the last ee pose
+
+    @classmethod
+    def load(cls, path: str | Path | None) -> TopicMap:
+        if path is None:
+            return cls()
+        try:
+            raw = yaml.safe_load(Path(path).read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise AdlError(f"{path}: cannot read topic map: {exc}") from exc
+        if not isinstance(raw, dict):
+            raise AdlError(f"{path}: topic map must be a mapping of keys to topics")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(raw) - known)
+        if unknown:
+            raise AdlError(f"{path}: unknown topic-map keys {unknown}; known keys: {sorted(known)}")
+        return cls(**raw)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def required_topics(self) -> list[str]:
+        return [self.image, self.camera_info, self.tf]
+
+    def optional_topics(self) -> list[str]:
+        return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static) if t]
