@@ -35,6 +35,7 @@ from .images import decode_image, depth_to_metres
 from .topics import TopicMap
 
 IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}
+TF_TYPES = {"tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"}  # tf/tfMessage: old ROS1 bags, same layout
 
 
 def sha256_of(path: Path) -> str:
@@ -71,13 +72,32 @@ def _field(msg: object, *names: str) -> object:
 
 def _check_types(bag: Path, topics: dict, tm: TopicMap) -> None:
     want = {tm.image: IMAGE_TYPES, tm.camera_info: {"sensor_msgs/msg/CameraInfo"},
-            tm.tf: {"tf2_msgs/msg/TFMessage"}, tm.tf_static: {"tf2_msgs/msg/TFMessage"},
+            tm.tf: TF_TYPES, tm.tf_static: TF_TYPES,
             tm.depth: {"sensor_msgs/msg/Image"}, tm.affordance: {"sensor_msgs/msg/Image"},
             tm.joints: {"sensor_msgs/msg/JointState"}, tm.task: {"std_msgs/msg/String"}}
     for topic, types in want.items():
         if topic and topic in topics and topics[topic].msgtype not in types | {"?"}:
             expected = " or ".join(sorted(types))
             raise AdlError(f"{bag}: topic {topic} has type {topics[topic].msgtype}, expected {expected}")
+
+
+def check_counts(bag: Path, topics: dict, read: dict[str, int]) -> None:
+    """Compare messages read with the bag's own counts: a reader that silently yields nothing (e.g. a rosbag2
+    QoS mismatch) must not pass as an empty topic."""
+    for topic, n in read.items():
+        declared = topics[topic].declared
+        if declared is not None and n != declared:
+            raise AdlError(f"{bag}: read {n} of the {declared} messages the bag declares on {topic}")
+
+
+def list_topics(bag: Path) -> list[tuple[str, str, int | None, int]]:
+    """(topic, type, declared count, messages actually read) for every topic: what `--list` prints."""
+    src = BagSource(bag)
+    topics = src.topics()
+    read = dict.fromkeys(topics, 0)
+    for topic, _t, _msg in src.messages(list(topics)):
+        read[topic] += 1
+    return [(t, i.msgtype, i.declared, read[t]) for t, i in sorted(topics.items())]
 
 
 class _Nearest:
@@ -161,11 +181,8 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         elif topic == tm.task and task is None:
             task = str(msg.data)
 
-    # The bag's own counts: a reader that silently yields nothing (e.g. a QoS mismatch) must not pass.
-    for topic, n in read.items():
-        declared = topics[topic].declared
-        if declared is not None and n != declared and not recover:
-            raise AdlError(f"{bag}: read {n} of the {declared} messages the bag declares on {topic}")
+    if not recover:
+        check_counts(bag, topics, read)
     if image is None or t_img is None:
         raise AdlError(f"{bag}: no message could be read on the image topic {tm.image}")
     if info is None:
@@ -291,7 +308,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m adlpipe.ingest", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bags", nargs="+", type=Path, help=".mcap / .bag files, rosbag2 folders or .db3 files")
-    p.add_argument("-o", "--output", required=True, type=Path, help="HDF5 file to create or extend")
+    p.add_argument("-o", "--output", type=Path, help="HDF5 file to create or extend (required unless --list)")
+    p.add_argument("--list", action="store_true",
+                   help="print each bag's topics, types, declared and read message counts; write nothing")
     p.add_argument("--config", type=Path, help="topic map YAML (keys of adlpipe.topics.TopicMap)")
     p.add_argument("--waypoints", type=int, default=32, help="waypoints per trajectory (default 32)")
     p.add_argument("--size", type=int, default=224, help="stored image width and height (default 224)")
@@ -302,6 +321,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--recover", action="store_true",
                    help="read what is complete in a truncated MCAP and report what was lost")
     args = p.parse_args(argv)
+    if not args.list and args.output is None:
+        p.error("the following arguments are required: -o/--output")
     if args.waypoints < 2 or args.size < 16:
         raise AdlError("--waypoints must be >= 2 and --size >= 16")
     return args
@@ -325,9 +346,10 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
         with ProcessPoolExecutor(max_workers=workers) as pool:
             it = pool.map(_worker, jobs)
             results = list(tqdm(it, total=len(jobs), desc="ingest", unit="bag", file=sys.stderr,
-                                disable=not progress))
+                                disable=None if progress else True))
     else:
-        results = [_worker(j) for j in tqdm(jobs, desc="ingest", unit="bag", file=sys.stderr, disable=not progress)]
+        bar = tqdm(jobs, desc="ingest", unit="bag", file=sys.stderr, disable=None if progress else True)
+        results = [_worker(j) for j in bar]
 
     errors = [err for _b, _e, _n, err in results if err]
     if errors and not skip_bad:
@@ -360,6 +382,15 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.list:
+        bad = 0
+        for bag in args.bags:
+            print(f"{bag}:")
+            for topic, msgtype, declared, n in list_topics(bag):
+                flag = "" if declared in (None, n) else "   <-- count mismatch"
+                bad += bool(flag)
+                print(f"  {topic:40s} {msgtype:40s} declared {declared!s:>6} read {n:>6}{flag}")
+        return 1 if bad else 0
     tm = TopicMap.load(args.config)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     c = ingest(args.bags, args.output, tm, args.waypoints, args.size, args.task, args.workers, args.skip_bad,

@@ -65,7 +65,7 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
                                lambda tn=tn, rgb=rgb: f.compressed(tn, CAMERA_FRAME, rgb, image_format)))
             if topics.depth:
                 if depth_format == "16UC1":
-                    d = np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16)
+                    d = np.clip(np.round(np.nan_to_num(depth, nan=0.0) * 1000.0), 0, 65535).astype(np.uint16)
                 else:
                     d = depth.astype(np.float32)
                 events.append((tn, 5, topics.depth, M.IMAGE,

@@ -13,12 +13,14 @@ from .controller import ArmController, execute_path
 from .tasks import TASKS, Scene, SuccessMonitor, Task
 from .world import ARM_JOINTS, FINGER_JOINTS, HOME_TCP, SceneSpec, build_mjcf
 
+DEPTH_RANGE_M = 5.0
 SPEED = 0.30  # m/s of the demonstrator's tcp between keypoints
 MIN_SEGMENT_S = 0.25
 
 
-def make_scene(spec: SceneSpec, width: int = 224, height: int = 224) -> tuple[ArmController, Scene]:
-    model = mujoco.MjModel.from_xml_string(build_mjcf(spec, width, height))
+def make_scene(spec: SceneSpec, width: int = 224, height: int = 224,
+               markers: list | None = None) -> tuple[ArmController, Scene]:
+    model = mujoco.MjModel.from_xml_string(build_mjcf(spec, width, height, markers))
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     ctrl = ArmController(model, data)
@@ -159,6 +161,7 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
             renderer.enable_depth_rendering()
             renderer.update_scene(d, camera="rgbd")
             depth = renderer.render().copy()
+            depth[depth > DEPTH_RANGE_M] = np.nan  # no return beyond the sensor's range (REP 118)
             renderer.disable_depth_rendering()
             st.camera.append((t, rgb, depth))
             st.objects.append((t, {n: (d.xpos[m.body(n).id].copy(), d.xquat[m.body(n).id].copy())
@@ -187,3 +190,12 @@ def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -
     fn = waypoint_path(np.asarray(waypoints, float), duration)
     execute_path(ctrl, fn, duration, on_step=on_step)
     return monitor.success(), np.array(path)
+
+
+def spec_from_objects(task: str, names: list[str], poses: np.ndarray) -> SceneSpec:
+    """Rebuild a scene specification from the initial object poses stored with an episode (x y z qw qx qy qz)."""
+    out = {}
+    for name, p in zip(names, poses, strict=True):
+        qw, qz = p[3], p[6]
+        out[name] = (float(p[0]), float(p[1]), float(p[2]), float(2 * np.arctan2(qz, qw)))
+    return SceneSpec(task=task, poses=out, tool=TASKS[task].tool)

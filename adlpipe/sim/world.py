@@ -10,6 +10,7 @@ import numpy as np
 TABLE_TOP_Z = 0.0
 SHOULDER_Z = 0.32
 HAND_DOWN_QUAT = (0.0, 1.0, 0.0, 0.0)  # hand z-axis pointing down (180 deg about x), as a wxyz quaternion
+MARKER_GROUP = 5
 HOME_TCP = np.array([0.0, 0.22, 0.22])
 CAMERA_POS = np.array([0.80, -0.40, 0.95])
 CAMERA_LOOKAT = np.array([0.0, 0.30, 0.22])
@@ -173,9 +174,14 @@ _PROPS = {
 GRASPABLE = set(_OBJECTS) - {"trash"}
 
 
-def build_mjcf(spec: SceneSpec, width: int = 224, height: int = 224) -> str:
-    """MJCF text of the scene: camera, lights, table, manikin, the task's objects/props and the arm."""
-    bodies = []
+def build_mjcf(spec: SceneSpec, width: int = 224, height: int = 224, markers: list | None = None) -> str:
+    """MJCF text of the scene: camera, lights, table, manikin, the task's objects/props and the arm.
+
+    markers: optional base_link points drawn as small pure-green spheres (no collision, geom group MARKER_GROUP),
+    for projection checks.
+    """
+    bodies = [f'<geom type="sphere" size="0.012" pos="{p[0]} {p[1]} {p[2]}" rgba="0 1 0 1" contype="0" '
+              f'conaffinity="0" group="{MARKER_GROUP}"/>' for p in (markers or [])]
     for name, (x, y, z, yaw) in spec.poses.items():
         if name == "manikin":
             bodies.append(_manikin_xml(x, y, z, yaw))

@@ -1,0 +1,36 @@
+# Two commands on a fresh machine:  `make demo` (install + run the pipeline on the embedded default data)
+#                                   `make test` (install + lint + the test suite)
+PY ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+export MUJOCO_GL ?= egl
+export DVC_NO_ANALYTICS = 1
+
+.PHONY: install test demo lint bench clean
+
+$(BIN)/.installed: pyproject.toml
+	$(PY) -m venv $(VENV)
+	# torch first, pinned: the CPU build on disk, never a multi-GB CUDA download
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q -e ".[test]"
+	touch $@
+
+install: $(BIN)/.installed
+
+lint: install
+	$(BIN)/ruff check adlpipe tests bench
+
+test: install lint
+	$(BIN)/python -m pytest -q
+
+demo: install
+	@test -d .git || (echo "make demo needs a git checkout (dvc)"; exit 1)
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/dvc repro
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/dvc metrics show
+
+bench: install
+	$(BIN)/python bench/ingest.py
+	$(BIN)/python bench/infer.py
+
+clean:
+	rm -rf $(VENV) data/bags data/*.h5 data/split.json models metrics reports

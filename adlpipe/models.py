@@ -1,0 +1,108 @@
+"""The four named policies: an image encoder + a network + an objective, in two size presets.
+
+    fm_cnn          flow matching, 1D conditional U-Net        (the paper's method)
+    fm_transformer  flow matching, transformer denoiser
+    dp_cnn          Diffusion Policy: DDPM, 1D conditional U-Net
+    bc_transformer  behaviour cloning: transformer regressor, MSE
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+import torch
+from torch import nn
+
+from .data import ACTION_DIM
+from .nets.resnet import ResNet18GN
+from .nets.transformer import TransformerDenoiser, TransformerRegressor
+from .nets.unet1d import ConditionalUnet1D
+from .objectives import DDPM, FlowMatching, MSERegression
+
+MODELS = {  # name -> (objective, network)
+    "fm_cnn": ("fm", "unet"),
+    "fm_transformer": ("fm", "transformer"),
+    "dp_cnn": ("ddpm", "unet"),
+    "bc_transformer": ("mse", "transformer_regressor"),
+}
+DEFAULT_METHOD = {"fm": "euler", "ddpm": "ddim", "mse": "direct"}
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    model: str = "fm_cnn"
+    image_size: int = 64
+    horizon: int = 32
+    use_depth: bool = False
+    encoder_width: int = 16  # 64 = standard ResNet-18
+    obs_dim: int = 64
+    down_dims: tuple[int, ...] = (32, 64, 128)
+    kernel: int = 5
+    groups: int = 8
+    d_model: int = 64
+    n_layers: int = 2
+    n_heads: int = 4
+
+    @property
+    def in_channels(self) -> int:
+        return 5 if self.use_depth else 4
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["down_dims"] = list(self.down_dims)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ModelConfig:
+        d = dict(d)
+        d["down_dims"] = tuple(d["down_dims"])
+        return cls(**d)
+
+
+PRESETS = {
+    "small": ModelConfig(),  # trains on 2 CPU cores in minutes
+    "paper": ModelConfig(image_size=224, encoder_width=64, obs_dim=512, down_dims=(256, 512, 1024), d_model=256,
+                         n_layers=6, n_heads=8),
+}
+
+
+def preset(name: str, model: str, **overrides: object) -> ModelConfig:
+    return replace(PRESETS[name], model=model, **overrides)
+
+
+def make_objective(kind: str) -> FlowMatching | DDPM | MSERegression:
+    return {"fm": FlowMatching, "ddpm": DDPM, "mse": MSERegression}[kind]()
+
+
+class Policy(nn.Module):
+    """obs (B, C, S, S) -> normalised trajectory (B, horizon, 5)."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        if cfg.model not in MODELS:
+            raise ValueError(f"unknown model {cfg.model!r}; models: {sorted(MODELS)}")
+        self.cfg = cfg
+        self.kind, net = MODELS[cfg.model]
+        self.objective = make_objective(self.kind)
+        self.encoder = ResNet18GN(cfg.in_channels, cfg.obs_dim, cfg.encoder_width)
+        if net == "unet":
+            self.net = ConditionalUnet1D(ACTION_DIM, cfg.obs_dim, cfg.down_dims, cfg.kernel, cfg.groups)
+        elif net == "transformer":
+            self.net = TransformerDenoiser(ACTION_DIM, cfg.obs_dim, cfg.horizon, cfg.d_model, cfg.n_layers, cfg.n_heads)
+        else:
+            self.net = TransformerRegressor(ACTION_DIM, cfg.obs_dim, cfg.horizon, cfg.d_model, cfg.n_layers,
+                                            cfg.n_heads)
+
+    @property
+    def default_method(self) -> str:
+        return DEFAULT_METHOD[self.kind]
+
+    def loss(self, obs: torch.Tensor, action: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
+        return self.objective.loss(self.net, action, self.encoder(obs), gen)
+
+    @torch.no_grad()
+    def predict(self, obs: torch.Tensor, steps: int = 1, method: str | None = None,
+                gen: torch.Generator | None = None) -> torch.Tensor:
+        cond = self.encoder(obs)
+        shape = (obs.shape[0], self.cfg.horizon, ACTION_DIM)
+        return self.objective.sample(self.net, cond, shape, steps, method or self.default_method, gen)

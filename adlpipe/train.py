@@ -1,0 +1,221 @@
+"""Train one of the four policies with the one training loop.
+
+    python -m adlpipe.train --model fm_cnn --data data/adl.h5 --split data/split.json --out models/fm_cnn
+
+AdamW (lr 1e-4, weight decay 1e-6), cosine schedule with linear warm-up, EMA weights (used for the test loss and
+saved for inference). Train and test loss are logged per epoch to a CSV that `dvc plots` reads. A checkpoint is
+written atomically after every epoch; re-running the same command resumes from it (after a kill, too), and each
+epoch's randomness comes from (seed, epoch), so a resumed run ends where an uninterrupted one does.
+Checkpoints hold only tensors and plain values: they load with torch.load(weights_only=True).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from .data import TrajectoryDataset, compute_stats
+from .errors import AdlError, run_cli
+from .models import MODELS, PRESETS, ModelConfig, Policy, preset
+from .split import load_split
+
+LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "lr", "seconds"]
+
+
+def cosine_with_warmup(opt: torch.optim.Optimizer, warmup: int, total: int) -> torch.optim.lr_scheduler.LambdaLR:
+    def f(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        progress = (step - warmup) / max(1, total - warmup)
+        return 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+
+    return torch.optim.lr_scheduler.LambdaLR(opt, f)
+
+
+class EMA:
+    """Exponential moving average of the weights with Diffusion Policy's warm-up: decay = 1 - (1 + step/1)^-0.75,
+    capped at max_decay, so early averages are not dominated by the random initialisation."""
+
+    def __init__(self, model: torch.nn.Module, max_decay: float = 0.999) -> None:
+        self.model = copy.deepcopy(model).eval().requires_grad_(False)
+        self.max_decay = max_decay
+        self.step = 0
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module) -> None:
+        self.step += 1
+        decay = min(self.max_decay, max(0.0, 1 - (1 + self.step) ** -0.75))
+        for e, p in zip(self.model.parameters(), model.parameters(), strict=True):
+            e.mul_(decay).add_(p.detach(), alpha=1 - decay)
+        for e, b in zip(self.model.buffers(), model.buffers(), strict=True):
+            e.copy_(b)
+
+
+def save_atomic(obj: dict, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path) -> dict:
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)  # never unpickle code from a user file
+    except Exception as exc:  # noqa: BLE001 - a corrupt or foreign file
+        raise AdlError(f"{path}: not a loadable adlpipe checkpoint ({type(exc).__name__}: {exc})") from exc
+
+
+def load_policy(path: Path) -> tuple[Policy, dict]:
+    """The EMA policy saved by training (model.pt), ready for inference, and its checkpoint metadata."""
+    ck = load_checkpoint(path)
+    if "config" not in ck or "ema" not in ck:
+        raise AdlError(f"{path}: not an adlpipe policy checkpoint (no config/ema)")
+    policy = Policy(ModelConfig.from_dict(ck["config"]))
+    policy.load_state_dict(ck["ema"])
+    return policy.eval(), ck
+
+
+@torch.no_grad()
+def evaluate_loss(policy: Policy, loader: DataLoader, seed: int) -> float:
+    gen = torch.Generator().manual_seed(seed)  # the same noise every epoch: comparable test losses
+    total, n = 0.0, 0
+    for obs, act in loader:
+        total += float(policy.loss(obs, act, gen)) * len(obs)
+        n += len(obs)
+    return total / max(n, 1)
+
+
+def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
+          lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = 50, seed: int = 0,
+          log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None) -> dict:
+    """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests)."""
+    out.mkdir(parents=True, exist_ok=True)
+    split = load_split(split_path)
+    if not split["train"]:
+        raise AdlError(f"{split_path}: the train split is empty")
+    stats = compute_stats(str(data), split["train"])
+    train_ds = TrajectoryDataset(str(data), split["train"], stats, cfg.image_size, cfg.use_depth)
+    test_ds = TrajectoryDataset(str(data), split["test"] or split["train"], stats, cfg.image_size, cfg.use_depth)
+    steps_per_epoch = math.ceil(len(train_ds) / batch_size)
+    hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
+               "warmup_steps": warmup_steps, "seed": seed, "data": str(data), "split": sorted(split["train"])}
+
+    torch.manual_seed(seed)
+    policy = Policy(cfg)
+    opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=weight_decay)
+    sched = cosine_with_warmup(opt, warmup_steps, epochs * steps_per_epoch)
+    ema = EMA(policy)
+    history: list[dict] = []
+    start_epoch = 0
+    last = out / "last.pt"
+    if last.exists():
+        ck = load_checkpoint(last)
+        if ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams:
+            raise AdlError(f"{last}: checkpoint is from other settings; remove {out} (or use --restart) to retrain")
+        policy.load_state_dict(ck["model"])
+        ema.model.load_state_dict(ck["ema"])
+        ema.step = int(ck["ema_step"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["scheduler"])
+        history, start_epoch = list(ck["history"]), int(ck["epoch"])
+
+    test_loader = DataLoader(test_ds, batch_size=batch_size, shuffle=False)
+    bar = tqdm(range(start_epoch, epochs), initial=start_epoch, total=epochs, desc=f"train {cfg.model}",
+               unit="epoch", file=sys.stderr, disable=None if progress else True)
+    for epoch in bar:
+        t0 = time.time()
+        gen = torch.Generator().manual_seed(seed * 100_003 + epoch)  # the epoch's randomness: resumable exactly
+        loader = DataLoader(train_ds, batch_size=batch_size, shuffle=True, generator=gen)
+        policy.train()
+        total, n = 0.0, 0
+        for obs, act in loader:
+            loss = policy.loss(obs, act, gen)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+            opt.step()
+            sched.step()
+            ema.update(policy)
+            total += loss.item() * len(obs)
+            n += len(obs)
+        row = {"epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "train_loss": total / n,
+               "test_loss": evaluate_loss(ema.model, test_loader, seed), "lr": sched.get_last_lr()[0],
+               "seconds": time.time() - t0}
+        history.append(row)
+        bar.set_postfix(train=f"{row['train_loss']:.4f}", test=f"{row['test_loss']:.4f}")
+        save_atomic({"model": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
+                     "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1,
+                     "history": history, "config": cfg.to_dict(), "hparams": hparams, "stats": stats}, last)
+        if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
+            return {"interrupted_at": epoch + 1}
+
+    save_atomic({"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats, "history": history,
+                 "hparams": hparams}, out / "model.pt")
+    if log_csv is not None:
+        log_csv.parent.mkdir(parents=True, exist_ok=True)
+        tmp = log_csv.with_name(f".{log_csv.name}.tmp")
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, LOG_FIELDS)
+            w.writeheader()
+            w.writerows(history)
+        os.replace(tmp, log_csv)
+    final = {"model": cfg.model, "epochs": epochs, "train_loss": history[-1]["train_loss"],
+             "test_loss": history[-1]["test_loss"], "seconds": sum(r["seconds"] for r in history)}
+    (out / "metrics.json").write_text(json.dumps(final, indent=1) + "\n")
+    return final
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m adlpipe.train", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", required=True, choices=sorted(MODELS))
+    p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
+    p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
+    p.add_argument("--out", type=Path, help="output folder (default: models/<model>)")
+    p.add_argument("--config", choices=sorted(PRESETS), default="small",
+                   help="small: trains on 2 CPU cores in minutes (default); paper: 224x224, full-size networks")
+    p.add_argument("--image-size", type=int, help="override the preset's input size")
+    p.add_argument("--depth", action="store_true", help="add the depth image as an input channel")
+    p.add_argument("--epochs", type=int, default=100)
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--weight-decay", type=float, default=1e-6)
+    p.add_argument("--warmup-steps", type=int, default=50)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--log", type=Path, help="per-epoch CSV for dvc plots (default: <out>/log.csv)")
+    p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and train from scratch")
+    args = p.parse_args(argv)
+    if args.epochs < 1 or args.batch_size < 1:
+        raise AdlError("--epochs and --batch-size must be >= 1")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    overrides = {"use_depth": args.depth}
+    if args.image_size:
+        overrides["image_size"] = args.image_size
+    cfg = preset(args.config, args.model, **overrides)
+    out = args.out or Path("models") / args.model
+    if args.restart and (out / "last.pt").exists():
+        (out / "last.pt").unlink()
+    if not args.data.exists():
+        raise AdlError(f"{args.data}: no such dataset; run python -m adlpipe.ingest first")
+    split = args.split or args.data.with_name("split.json")
+    m = train(args.data, split, out, cfg, args.epochs, args.batch_size, args.lr, args.weight_decay, args.warmup_steps,
+              args.seed, args.log or out / "log.csv", progress=True)
+    print(f"{out}: {cfg.model} trained {m['epochs']} epochs in {m['seconds']:.0f} s, "
+          f"train loss {m['train_loss']:.4f}, test loss {m['test_loss']:.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli("adlpipe.train", main))

@@ -1,0 +1,52 @@
+"""Shared fixtures: real bags recorded once per test session with the MuJoCo recorder (small and fast)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+REPO = Path(__file__).resolve().parents[1]
+PUBLIC_BAGS = REPO.parent / "shared" / "fixtures" / "public-bags"
+SMALL = ["--size", "64", "--camera-hz", "5"]
+
+
+def run_module(module: str, *args: str, check: bool = False, timeout: float = 600) -> subprocess.CompletedProcess:
+    """Run `python -m adlpipe.<module>` as a user would; returns the completed process (text output)."""
+    proc = subprocess.run([sys.executable, "-m", f"adlpipe.{module}", *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout, cwd=REPO)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"adlpipe.{module} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+@pytest.fixture(scope="session")
+def mcap_bags(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """One ROS2 MCAP episode of each of three tasks (64x64 camera at 5 Hz)."""
+    out = tmp_path_factory.mktemp("bags")
+    run_module("record", "--episodes", "1", "--tasks", "wipe the nose", "pass the water", "cover the food",
+               "--out", out, *SMALL, check=True)
+    bags = sorted(out.glob("*.mcap"))
+    assert len(bags) == 3
+    return bags
+
+
+@pytest.fixture(scope="session")
+def ingested(mcap_bags: list[Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("h5") / "adl.h5"
+    run_module("ingest", *mcap_bags, "-o", out, "--size", "64", check=True)
+    return out
+
+
+def one_line_error(proc: subprocess.CompletedProcess) -> str:
+    """The error a CLI printed: exactly one line, no traceback."""
+    assert proc.returncode != 0, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert ": error: " in lines[0]
+    return lines[0]
