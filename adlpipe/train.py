@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from .data import TrajectoryDataset, compute_stats
 from .errors import AdlError, run_cli
-from .models import MODELS, PRESETS, ModelConfig, Policy, preset
+from .models import MODELS, PRESET_LR, PRESETS, ModelConfig, Policy, preset
 from .split import load_split
 
 LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "lr", "seconds"]
@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--depth", action="store_true", help="add the depth image as an input channel")
     p.add_argument("--epochs", type=int, default=100)
     p.add_argument("--batch-size", type=int, default=32)
-    p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--lr", type=float, help="AdamW learning rate (default: the preset's, small 1e-3, paper 1e-4)")
     p.add_argument("--weight-decay", type=float, default=1e-6)
     p.add_argument("--warmup-steps", type=int, default=50)
     p.add_argument("--seed", type=int, default=0)
@@ -210,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.data.exists():
         raise AdlError(f"{args.data}: no such dataset; run python -m adlpipe.ingest first")
     split = args.split or args.data.with_name("split.json")
-    m = train(args.data, split, out, cfg, args.epochs, args.batch_size, args.lr, args.weight_decay, args.warmup_steps,
+    lr = args.lr if args.lr is not None else PRESET_LR[args.config]
+    m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay, args.warmup_steps,
               args.seed, args.log or out / "log.csv", progress=True)
     print(f"{out}: {cfg.model} trained {m['epochs']} epochs in {m['seconds']:.0f} s, "
           f"train loss {m['train_loss']:.4f}, test loss {m['test_loss']:.4f}")

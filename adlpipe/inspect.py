@@ -1,0 +1,117 @@
+"""Write a Rerun recording of a policy's predictions on episodes of the dataset.
+
+    python -m adlpipe.inspect --model models/fm_cnn --episodes 0 1 2 -o preds.rrd     (indices into the test split)
+    rerun preds.rrd
+
+Per episode (timeline `episode`): the RGB image with the affordance map as a colour-mapped overlay, the ground-truth
+and predicted 2D trajectories as line strips on the image, the 3D trajectories in the base frame and the camera
+(Transform3D + Pinhole) in a 3D view; a blueprint lays out the image and the 3D view side by side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+import torch
+
+from . import schema
+from .data import Normalizer, observation
+from .errors import AdlError, run_cli
+from .split import load_split
+from .train import load_policy
+
+GT_COLOR = [40, 200, 40]
+PRED_COLOR = [230, 60, 40]
+
+
+def affordance_overlay(aff: np.ndarray) -> np.ndarray:
+    """RGBA: a jet colour map whose opacity follows the affordance value."""
+    a = np.clip(np.nan_to_num(aff), 0, 1)
+    rgb = cv2.cvtColor(cv2.applyColorMap((a * 255).astype(np.uint8), cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)
+    return np.dstack([rgb, (a * 180).astype(np.uint8)])
+
+
+def blueprint() -> rrb.Blueprint:
+    return rrb.Blueprint(rrb.Horizontal(
+        rrb.Spatial2DView(origin="world/camera/image", name="image + 2D trajectories"),
+        rrb.Spatial3DView(origin="world", name="3D trajectories"),
+    ), collapse_panels=True)
+
+
+def write_recording(out: Path, episodes: list[schema.Episode], preds: list[np.ndarray], model: str) -> None:
+    """preds[i]: (K, N, 5) samples (u, v, x, y, z) for episodes[i]. Written to a temp file, then renamed."""
+    rec = rr.RecordingStream("adlpipe_inspect")
+    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
+    rec.save(tmp, default_blueprint=blueprint())
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    for i, (ep, pred) in enumerate(zip(episodes, preds, strict=True)):
+        rec.set_time("episode", sequence=i)
+        h, w = ep.rgb.shape[:2]
+        T = ep.T_base_camera
+        rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        rec.log("world/camera/image", rr.Pinhole(image_from_camera=ep.K, resolution=[w, h]))
+        rec.log("world/camera/image/rgb", rr.Image(ep.rgb))
+        rec.log("world/camera/image/affordance", rr.Image(affordance_overlay(ep.affordance)))
+        rec.log("world/camera/image/gt", rr.LineStrips2D([ep.traj2d], colors=[GT_COLOR], radii=0.5,
+                                                         labels=[f"{ep.task} (demo)"]))
+        rec.log("world/camera/image/pred", rr.LineStrips2D(list(pred[:, :, :2]), colors=[PRED_COLOR], radii=0.5,
+                                                           labels=[model] * len(pred)))
+        rec.log("world/gt", rr.LineStrips3D([ep.traj3d], colors=[GT_COLOR], radii=0.003))
+        rec.log("world/pred", rr.LineStrips3D(list(pred[:, :, 2:]), colors=[PRED_COLOR], radii=0.003))
+        rec.log("world/task", rr.TextDocument(f"{ep.task}\n{ep.source_path}"))
+    rec.flush()
+    rec.disconnect()
+    os.replace(tmp, out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m adlpipe.inspect", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", type=Path, required=True, help="model folder (holding model.pt)")
+    p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
+    p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
+    p.add_argument("--episodes", nargs="+", default=["0"],
+                   help="test-split indices or episode names (default: the first test episode)")
+    p.add_argument("--samples", type=int, default=4, help="predicted samples drawn per episode")
+    p.add_argument("--steps", type=int, default=4)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-o", "--output", type=Path, default=Path("preds.rrd"))
+    args = p.parse_args(argv)
+    policy, ck = load_policy(args.model / "model.pt")
+    norm = Normalizer(ck["stats"])
+    with h5py.File(args.data, "r") as f:
+        schema.check_file(f, str(args.data))
+        all_names = schema.episode_names(f)
+        test = load_split(args.split or args.data.with_name("split.json"))["test"] or all_names
+        names = []
+        for e in args.episodes:
+            if e.isdigit():
+                if int(e) >= len(test):
+                    raise AdlError(f"episode index {e} out of range: the test split has {len(test)} episodes")
+                names.append(test[int(e)])
+            elif e in all_names:
+                names.append(e)
+            else:
+                raise AdlError(f"no episode {e!r} in {args.data}")
+        eps = [schema.read_episode(f, n) for n in names]
+        obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
+                                                        policy.cfg.use_depth)) for n in names])
+    gen = torch.Generator().manual_seed(args.seed)
+    k = 1 if policy.kind == "mse" else max(1, args.samples)
+    samples = torch.stack([norm.unnormalize(policy.predict(obs, args.steps, None, gen)) for _ in range(k)], dim=1)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    write_recording(args.output, eps, list(samples.numpy()), policy.cfg.model)
+    print(f"{args.output}: {len(eps)} episode(s), {k} sample(s) each from {args.model}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli("adlpipe.inspect", main))
