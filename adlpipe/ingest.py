@@ -95,7 +95,8 @@ def list_topics(bag: Path) -> list[tuple[str, str, int | None, int]]:
     src = BagSource(bag)
     topics = src.topics()
     read = dict.fromkeys(topics, 0)
-    for topic, _t, _msg in src.messages(list(topics)):
+    for topic, _t, decode in src.messages(list(topics)):
+        decode()  # a message that does not decode is a bad bag, not a count
         read[topic] += 1
     return [(t, i.msgtype, i.declared, read[t]) for t, i in sorted(topics.items())]
 
@@ -150,28 +151,35 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     first_pose: dict[str, tuple[float, str, np.ndarray]] = {}
     where = lambda topic: f"{bag}: topic {topic}"  # noqa: E731
 
-    for topic, _log_t, msg in src.messages(wanted):
+    settled: set[str] = set()  # depth/affordance topics whose stamps have passed the first image
+    for topic, _log_t, decode in src.messages(wanted):
         read[topic] += 1
         if topic == tm.image:
             if image is None:
+                msg = decode()
                 image, t_img = decode_image(msg, where(topic)), stamp_s(msg)
                 camera_frame = str(msg.header.frame_id)
         elif topic == tm.camera_info:
             if info is None:
-                info = msg
-        elif topic == tm.depth:
-            depth.offer(stamp_s(msg), msg, t_img)
-        elif topic == tm.affordance:
-            aff.offer(stamp_s(msg), msg, t_img)
+                info = decode()
+        elif topic in (tm.depth, tm.affordance):
+            if topic not in settled:
+                msg = decode()
+                t = stamp_s(msg)
+                (depth if topic == tm.depth else aff).offer(t, msg, t_img)
+                if t_img is not None and t > t_img + tm.sync_tolerance_s:
+                    settled.add(topic)
         elif topic in (tm.tf, tm.tf_static):
-            for tr in msg.transforms:
+            for tr in decode().transforms:
                 T = pose_matrix([tr.transform.translation.x, tr.transform.translation.y, tr.transform.translation.z],
                                 [tr.transform.rotation.w, tr.transform.rotation.x, tr.transform.rotation.y,
                                  tr.transform.rotation.z])
-                child, parent, t = str(tr.child_frame_id).lstrip("/"), str(tr.header.frame_id).lstrip("/"), stamp_s(tr)
+                child, parent = str(tr.child_frame_id).lstrip("/"), str(tr.header.frame_id).lstrip("/")
+                t = stamp_s(tr)
                 tf.add(parent, child, t, T, static=topic == tm.tf_static)
                 first_pose.setdefault(child, (t, parent, T))
         elif topic == tm.joints:
+            msg = decode()
             pos = np.asarray(msg.position, float)
             if not joint_names:
                 joint_names = [str(n) for n in msg.name]
@@ -179,7 +187,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
                 joint_t.append(stamp_s(msg))
                 joint_pos.append(pos)
         elif topic == tm.task and task is None:
-            task = str(msg.data)
+            task = str(decode().data)
 
     if not recover:
         check_counts(bag, topics, read)

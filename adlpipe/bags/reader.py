@@ -4,8 +4,9 @@
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from ..errors import AdlError
@@ -110,8 +111,9 @@ class BagSource:
         return AnyReader([path], default_typestore=store)
 
     # -- messages --------------------------------------------------------------------------------------------
-    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, object]]:
-        """(topic, log_time_ns, decoded message) for the given topics, in log-time order."""
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Callable[[], object]]]:
+        """(topic, log_time_ns, decode) for the given topics, in log-time order. decode() returns the message;
+        callers skip it for messages they do not need (the images after the first frame), which is most bytes."""
         try:
             if self.kind == "mcap":
                 yield from self._mcap_messages(topics)
@@ -150,14 +152,14 @@ class BagSource:
             wanted = set(topics)
             for schema, channel, message in self._stream_records():
                 if channel.topic in wanted:
-                    yield channel.topic, message.log_time, self._decode(schema, channel, message, cache)
+                    yield channel.topic, message.log_time, partial(self._decode, schema, channel, message, cache)
             return
         from mcap.reader import make_reader
 
         with open(self.path, "rb") as f:
             reader = make_reader(f)
             for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
-                yield channel.topic, message.log_time, self._decode(schema, channel, message, cache)
+                yield channel.topic, message.log_time, partial(self._decode, schema, channel, message, cache)
 
     def _damaged(self) -> bool:
         from mcap.reader import make_reader
@@ -200,4 +202,4 @@ class BagSource:
         with self._any_reader() as reader:
             conns = [c for c in reader.connections if c.topic in set(topics)]
             for conn, t, raw in reader.messages(connections=conns):
-                yield conn.topic, t, reader.deserialize(raw, conn.msgtype)
+                yield conn.topic, t, partial(reader.deserialize, raw, conn.msgtype)
