@@ -9,7 +9,9 @@ import numpy as np
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """wxyz quaternion -> 3x3 rotation matrix."""
-    w, x, y, z = np.asarray(q, float) / max(np.linalg.norm(q), 1e-12)
+    q = np.asarray(q, float)
+    n = float(np.sqrt(np.sum(q * q))) if np.isfinite(q).all() and np.abs(q).max() < 1e6 else float("nan")
+    w, x, y, z = q / max(n, 1e-12) if np.isfinite(n) else (np.nan,) * 4
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],

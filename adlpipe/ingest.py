@@ -35,6 +35,7 @@ from .images import decode_image, depth_to_metres
 from .topics import TopicMap
 
 IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}
+MAX_COORD_M = 1000.0  # tf translations beyond this are corrupt data, not a robot's workspace
 TF_TYPES = {"tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"}  # tf/tfMessage: old ROS1 bags, same layout
 
 
@@ -88,6 +89,20 @@ def check_counts(bag: Path, topics: dict, read: dict[str, int]) -> None:
         declared = topics[topic].declared
         if declared is not None and n != declared:
             raise AdlError(f"{bag}: read {n} of the {declared} messages the bag declares on {topic}")
+
+
+def recovery_note(src: BagSource, read: dict[str, int]) -> str:
+    """How much of a truncated MCAP was lost, on the topics the ingest uses."""
+    meta = src.declared_in_metadata()
+    got = sum(read.values())
+    if not meta:
+        return f"recovered {got} messages from a damaged MCAP; {src.lost_note or 'its tail is lost'}; " \
+               "the bag does not say how many messages it held"
+    held = {t: meta[t] for t in read if t in meta}
+    lost = {t: n - read[t] for t, n in held.items() if n > read[t]}
+    per_topic = ", ".join(f"{t} {n}" for t, n in sorted(lost.items())) or "none"
+    return (f"recovered {got} of {sum(held.values())} messages from a damaged MCAP: lost {sum(lost.values())} "
+            f"({per_topic})")
 
 
 def list_topics(bag: Path) -> list[tuple[str, str, int | None, int]]:
@@ -189,7 +204,10 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         elif topic == tm.task and task is None:
             task = str(decode().data)
 
-    if not recover:
+    note = ""
+    if recover and src.damaged:
+        note = recovery_note(src, read)
+    else:
         check_counts(bag, topics, read)
     if image is None or t_img is None:
         raise AdlError(f"{bag}: no message could be read on the image topic {tm.image}")
@@ -198,16 +216,21 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     task = task_override or task
     if not task:
         raise AdlError(f"{bag}: no task name (topic {tm.task} absent or empty); pass --task")
+    if any(ord(c) < 32 for c in task) or len(task) > 200:
+        raise AdlError(f"{bag}: task name on {tm.task} has control characters or is too long: {task[:60]!r}")
 
     h0, w0 = image.shape[:2]
     K0 = np.asarray(_field(info, "k", "K"), float).reshape(3, 3)
-    if int(info.width) not in (0, w0) or int(info.height) not in (0, h0) or K0[0, 0] <= 0:
+    if not np.isfinite(K0).all() or int(info.width) not in (0, w0) or int(info.height) not in (0, h0) \
+            or K0[0, 0] <= 0 or K0[1, 1] <= 0:
         raise AdlError(f"{bag}: camera info ({info.width}x{info.height}, fx={K0[0, 0]}) does not match the "
                        f"{w0}x{h0} image on {tm.image}")
     camera_frame = camera_frame or str(info.header.frame_id)
     T_bc = tf.lookup(tm.base_frame, camera_frame.lstrip("/"), t_img)
     if T_bc is None:
         raise AdlError(f"{bag}: no tf chain from camera frame {camera_frame!r} to base frame {tm.base_frame!r}")
+    if not np.isfinite(T_bc).all() or np.abs(T_bc[:3, 3]).max() > MAX_COORD_M:
+        raise AdlError(f"{bag}: camera pose from tf ({camera_frame} in {tm.base_frame}) is not finite")
 
     # End-effector path in the base frame, from the first image on.
     ee_times = tf.times.get(tm.ee_frame, [])
@@ -227,6 +250,11 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     t_end = float(ee_t[-1]) if tm.trajectory_end_s is None else min(float(ee_t[-1]), tm.trajectory_end_s)
     if t_end <= 0:
         raise AdlError(f"{bag}: the end-effector path ends before the first image")
+    if not (np.isfinite(ee_p).all() and np.abs(ee_p).max() < MAX_COORD_M):
+        raise AdlError(f"{bag}: end-effector poses from tf ({tm.ee_frame} in {tm.base_frame}) are not finite "
+                       f"or exceed {MAX_COORD_M} m")
+    if not np.all(np.diff(ee_t) >= 0):
+        raise AdlError(f"{bag}: end-effector tf stamps go backwards")
     traj3d = resample(ee_t, ee_p, 0.0, t_end, n_waypoints)
 
     # Images at the stored resolution; intrinsics follow the resize.
@@ -266,7 +294,6 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         names.append(child)
         poses.append(np.concatenate([T[:3, 3], _matrix_to_quat(T[:3, :3])]))
 
-    note = src.lost_note
     ep = schema.Episode(
         task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=src.kind,
         duration_s=t_end, stamp0_ns=int(round(t_img * 1e9)), base_frame=tm.base_frame, camera_frame=camera_frame,
@@ -274,7 +301,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         has_affordance=has_aff, object_names=names, objects=np.array(poses).reshape(-1, 7),
         ee_t=ee_t, ee_pos=ee_p,
         joint_t=np.asarray(joint_t) - t_img, joint_pos=np.asarray(joint_pos).reshape(len(joint_t), -1),
-        joint_names=joint_names,
+        joint_names=joint_names, note=note,
     )
     return ep, note
 
@@ -336,6 +363,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+def remove_stale_temps(output: Path) -> None:
+    """Temp files of ingests that were killed (their process is gone): never a valid output, so remove them."""
+    for tmp in output.parent.glob(f".{output.name}.tmp*"):
+        try:
+            pid = int(tmp.name.rsplit(".tmp", 1)[1])
+            os.kill(pid, 0)
+        except ValueError:
+            continue  # not one of ours
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except PermissionError:
+            continue  # alive, another user's
+
+
 def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, size: int = 224,
            task: str | None = None, workers: int = 1, skip_bad: bool = False, recover: bool = False,
            progress: bool = False) -> dict:
@@ -372,6 +413,7 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
               "errors": errors, "notes": notes}
     if not new:
         return counts  # nothing to add: the file stays exactly as it was
+    remove_stale_temps(output)
     tmp = output.with_name(f".{output.name}.tmp{os.getpid()}")
     try:
         if output.exists():

@@ -85,6 +85,10 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
                 events.append((tn, 8, topics.joints, M.JOINT_STATE,
                                lambda tn=tn, qp=qp, qv=qv: f.joint_state(tn, st.joint_names, qp, qv)))
         events.sort(key=lambda e: (e[0], e[1]))
+        counts: dict[str, int] = {}
+        for e in events:
+            counts[e[2]] = counts.get(e[2], 0) + 1
+        w.declare_counts(counts)
         for tn, _, topic, msgtype, build in events:
             w.write(topic, msgtype, tn, build())
         return w.close()

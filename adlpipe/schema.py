@@ -3,7 +3,7 @@
     /                          attrs: format_version, n_waypoints, image_size
     /episodes/<name>/          one group per bag; <name> = "<task_slug>-<sha256[:16]>"
         attrs: task, source_path, source_sha256, source_format, duration_s, stamp0_ns, base_frame,
-               camera_frame, has_depth, has_affordance
+               camera_frame, has_depth, has_affordance, note (what a --recover ingest lost)
         rgb          (H, W, 3) uint8     first camera frame, resized to image_size
         depth        (H, W)    float32   metres, NaN = no return (only if has_depth)
         affordance   (H, W)    float32   [0, 1] Gaussian blobs (zeros if the bag had none)
@@ -55,6 +55,7 @@ class Episode:
     joint_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     joint_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     joint_names: list[str] = field(default_factory=list)
+    note: str = ""  # e.g. what a --recover ingest of a truncated bag lost
 
     @property
     def name(self) -> str:
@@ -95,6 +96,7 @@ def write_episode(f: h5py.File, ep: Episode) -> None:
     g.attrs["stamp0_ns"] = int(ep.stamp0_ns)
     g.attrs["has_depth"] = ep.depth is not None
     g.attrs["has_affordance"] = bool(ep.has_affordance)
+    g.attrs["note"] = ep.note
     img = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
     g.create_dataset("rgb", data=ep.rgb.astype(np.uint8), **img)
     g.create_dataset("affordance", data=ep.affordance.astype(np.float32), **img)
@@ -127,7 +129,7 @@ def read_episode(f: h5py.File, name: str) -> Episode:
         depth=g["depth"][()] if "depth" in g else None, has_affordance=bool(a["has_affordance"]),
         object_names=[str(n) for n in g["objects"].attrs["names"]], objects=g["objects"][()],
         ee_t=s["ee_t"][()], ee_pos=s["ee_pos"][()], joint_t=s["joint_t"][()], joint_pos=s["joint_pos"][()],
-        joint_names=[str(n) for n in s["joint_pos"].attrs["joint_names"]],
+        joint_names=[str(n) for n in s["joint_pos"].attrs["joint_names"]], note=str(a.get("note", "")),
     )
 
 

@@ -12,6 +12,8 @@ from pathlib import Path
 from ..errors import AdlError
 from .messages import typestore
 
+COUNTS_METADATA = "adlpipe.message_counts"  # MCAP metadata record: topic -> message count, written first
+
 
 @dataclass
 class TopicInfo:
@@ -52,6 +54,7 @@ class BagSource:
         self.recover = recover
         self.lost_note = ""
         self._topics: dict[str, TopicInfo] | None = None
+        self._damaged: bool | None = None
 
     # -- topics ----------------------------------------------------------------------------------------------
     def topics(self) -> dict[str, TopicInfo]:
@@ -125,6 +128,33 @@ class BagSource:
             raise AdlError(f"{self.path}: unreadable {self.kind} bag while reading messages "
                            f"({type(exc).__name__}: {exc})") from exc
 
+    def _guard(self, topic: str, decode: Callable[[], object]) -> Callable[[], object]:
+        """A decode() whose library failures (a message that does not match its schema) are a bad bag."""
+
+        def guarded() -> object:
+            try:
+                return decode()
+            except AdlError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - untrusted bytes
+                raise AdlError(f"{self.path}: topic {topic}: message does not decode "
+                               f"({type(exc).__name__}: {exc})") from exc
+
+        return guarded
+
+    def declared_in_metadata(self) -> dict[str, int] | None:
+        """Per-topic counts an adlpipe recorder writes at the start of its MCAP files (readable even when the
+        file's tail, with its summary, is lost)."""
+        from mcap.records import Metadata
+
+        for _schema, _channel, rec in self._stream_records(include_metadata=True):
+            if isinstance(rec, Metadata) and rec.name == COUNTS_METADATA:
+                try:
+                    return {k: int(v) for k, v in rec.metadata.items()}
+                except ValueError:
+                    return None
+        return None
+
     def _decoders(self) -> list:
         from mcap_ros1.decoder import DecoderFactory as Ros1Decoder
         from mcap_ros2.decoder import DecoderFactory as Ros2Decoder
@@ -148,31 +178,39 @@ class BagSource:
 
     def _mcap_messages(self, topics: list[str]) -> Iterator[tuple[str, int, object]]:
         cache: dict = {}
-        if self.recover and self._damaged():
+        if self.recover and self.damaged:
             wanted = set(topics)
             for schema, channel, message in self._stream_records():
                 if channel.topic in wanted:
-                    yield channel.topic, message.log_time, partial(self._decode, schema, channel, message, cache)
+                    yield channel.topic, message.log_time, self._guard(channel.topic,
+                                                                       partial(self._decode, schema, channel, message,
+                                                                               cache))
             return
         from mcap.reader import make_reader
 
         with open(self.path, "rb") as f:
-            reader = make_reader(f)
+            reader = make_reader(f, validate_crcs=True)  # a corrupted chunk is an error, not silent garbage
             for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
-                yield channel.topic, message.log_time, partial(self._decode, schema, channel, message, cache)
+                yield channel.topic, message.log_time, self._guard(channel.topic,
+                                                                   partial(self._decode, schema, channel, message,
+                                                                           cache))
 
-    def _damaged(self) -> bool:
-        from mcap.reader import make_reader
+    @property
+    def damaged(self) -> bool:
+        """An MCAP whose summary cannot be read (truncated or corrupt tail)."""
+        if self._damaged is None:
+            from mcap.reader import make_reader
 
-        try:
-            with open(self.path, "rb") as f:
-                return make_reader(f).get_summary() is None
-        except Exception:  # noqa: BLE001
-            return True
+            try:
+                with open(self.path, "rb") as f:
+                    self._damaged = make_reader(f).get_summary() is None
+            except Exception:  # noqa: BLE001
+                self._damaged = True
+        return self.kind == "mcap" and self._damaged
 
-    def _stream_records(self) -> Iterator[tuple]:
+    def _stream_records(self, include_metadata: bool = False) -> Iterator[tuple]:
         """Complete records of a damaged MCAP, read front to back; stops at the first broken one."""
-        from mcap.records import Channel, Message, Schema
+        from mcap.records import Channel, Message, Metadata, Schema
         from mcap.stream_reader import StreamReader
 
         schemas: dict[int, Schema] = {}
@@ -193,6 +231,9 @@ class BagSource:
                     schemas[rec.id] = rec
                 elif isinstance(rec, Channel):
                     channels[rec.id] = rec
+                elif include_metadata and isinstance(rec, Metadata):
+                    yield None, None, rec
+                    return
                 elif isinstance(rec, Message) and rec.channel_id in channels:
                     n_ok += 1
                     ch = channels[rec.channel_id]
@@ -202,4 +243,4 @@ class BagSource:
         with self._any_reader() as reader:
             conns = [c for c in reader.connections if c.topic in set(topics)]
             for conn, t, raw in reader.messages(connections=conns):
-                yield conn.topic, t, partial(reader.deserialize, raw, conn.msgtype)
+                yield conn.topic, t, self._guard(conn.topic, partial(reader.deserialize, raw, conn.msgtype))

@@ -30,7 +30,8 @@ class BagWriter:
         self._channels: dict[str, object] = {}
         if fmt == "mcap":
             self._file = open(self.tmp, "wb")
-            self._w = McapWriter(self._file, compression=CompressionType.ZSTD)
+            # 256 KiB chunks: a truncated file loses at most one chunk of messages (see ingest --recover)
+            self._w = McapWriter(self._file, compression=CompressionType.ZSTD, chunk_size=256 * 1024)
             self._w.start(profile="ros2", library="adlpipe")
             self._seq = 0
         elif fmt == "bag":
@@ -57,6 +58,13 @@ class BagWriter:
             else:
                 self._channels[topic] = self._w.add_connection(topic, msgtype, typestore=self.msgs.store)
         return self._channels[topic]
+
+    def declare_counts(self, counts: dict[str, int]) -> None:
+        """MCAP: record the per-topic message counts up front, so a truncated file still says what it held."""
+        if self.fmt == "mcap":
+            from .reader import COUNTS_METADATA
+
+            self._w.add_metadata(COUNTS_METADATA, {k: str(v) for k, v in counts.items()})
 
     def write(self, topic: str, msgtype: str, t_ns: int, msg: object) -> None:
         ch = self._channel(topic, msgtype)
