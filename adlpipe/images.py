@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 import struct
+from collections.abc import Iterator
 
 import cv2
 import numpy as np
@@ -75,6 +78,23 @@ def compressed_size(data: bytes | memoryview) -> tuple[int, int] | None:
     return None
 
 
+@contextlib.contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """Silence C libraries writing to file descriptor 2 (not Python's sys.stderr object) for a moment."""
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def decode_compressed(msg: object, where: str) -> np.ndarray:
     """sensor_msgs/CompressedImage (jpeg/png) -> HxWx3 RGB."""
     data = _as_bytes(msg.data)
@@ -84,7 +104,8 @@ def decode_compressed(msg: object, where: str) -> np.ndarray:
     w, h = size
     if w <= 0 or h <= 0 or w * h > MAX_PIXELS:
         raise AdlError(f"{where}: compressed image header claims {w}x{h} pixels (limit {MAX_PIXELS})")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    with _quiet_stderr():  # libpng/libjpeg print their own complaints; ours is the one line that counts
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if img is None:
         raise AdlError(f"{where}: cannot decode CompressedImage data (format {msg.format!r})")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

@@ -71,6 +71,40 @@ def waypoint_path(waypoints: np.ndarray, duration: float) -> Callable:
     return fn
 
 
+class RgbdCamera:
+    """Renders RGB and metric depth of the fixed `rgbd` camera in one pass (read from the same frame buffer)."""
+
+    def __init__(self, model: mujoco.MjModel, width: int, height: int) -> None:
+        self.m, self.w, self.h = model, width, height
+        self.gl = mujoco.GLContext(width, height)
+        self.gl.make_current()
+        self.ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.ctx)
+        self.scene = mujoco.MjvScene(model, maxgeom=2000)
+        self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0  # shadows cost 60% of a software-rendered frame
+        self.cam = mujoco.MjvCamera()
+        self.cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self.cam.fixedcamid = model.camera("rgbd").id
+        self.opt, self.pert = mujoco.MjvOption(), mujoco.MjvPerturb()
+        self.rect = mujoco.MjrRect(0, 0, width, height)
+        extent = model.stat.extent
+        self.near, self.far = model.vis.map.znear * extent, model.vis.map.zfar * extent
+
+    def render(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        self.gl.make_current()
+        mujoco.mjv_updateScene(self.m, data, self.opt, self.pert, self.cam, mujoco.mjtCatBit.mjCAT_ALL, self.scene)
+        mujoco.mjr_render(self.rect, self.scene, self.ctx)
+        rgb = np.empty((self.h, self.w, 3), np.uint8)
+        z = np.empty((self.h, self.w), np.float32)
+        mujoco.mjr_readPixels(rgb, z, self.rect, self.ctx)
+        depth = self.near / (1 - z * (1 - self.near / self.far))  # z-buffer -> metres along the optical axis
+        return np.flipud(rgb).copy(), np.flipud(depth).astype(np.float32)
+
+    def close(self) -> None:
+        self.ctx.free()
+        self.gl.free()
+
+
 @dataclass
 class Streams:
     """The sensor streams of one episode, at their own rates, stamped in seconds from the episode start."""
@@ -138,7 +172,7 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
     st = Streams(task_name, spec, width, height, K, T_bc, duration=duration)
     tip_pts = touched_points(task, scene)
     st.affordance = affordance_map(project(tip_pts, K, T_bc), width, height, sigma=0.03 * width)
-    renderer = mujoco.Renderer(m, height, width)
+    camera = RgbdCamera(m, width, height)
     monitor = SuccessMonitor(task, scene)
     qadr = [m.jnt_qposadr[m.joint(j).id] for j in st.joint_names]
     vadr = [m.jnt_dofadr[m.joint(j).id] for j in st.joint_names]
@@ -156,13 +190,8 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
             st.ee.append((t, ctrl.tcp_pos, q))
             next_t["tf"] += 1.0 / tf_hz
         if t + 1e-9 >= next_t["cam"]:
-            renderer.update_scene(d, camera="rgbd")
-            rgb = renderer.render().copy()
-            renderer.enable_depth_rendering()
-            renderer.update_scene(d, camera="rgbd")
-            depth = renderer.render().copy()
+            rgb, depth = camera.render(d)
             depth[depth > DEPTH_RANGE_M] = np.nan  # no return beyond the sensor's range (REP 118)
-            renderer.disable_depth_rendering()
             st.camera.append((t, rgb, depth))
             st.objects.append((t, {n: (d.xpos[m.body(n).id].copy(), d.xquat[m.body(n).id].copy())
                                    for n in obj_names}))
@@ -170,7 +199,7 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
 
     on_step(0.0)
     execute_path(ctrl, path, duration, on_step=on_step)
-    renderer.close()
+    camera.close()
     st.success = monitor.success()
     return st
 
