@@ -47,12 +47,19 @@ class Normalizer:
 
 
 def observation(g: h5py.Group, image_size: int, use_depth: bool) -> np.ndarray:
-    """(C, S, S) float32 in [-1, 1]: RGB, affordance, optional depth."""
-    rgb = cv2.resize(g["rgb"][()], (image_size, image_size), interpolation=cv2.INTER_AREA)
-    aff = cv2.resize(g["affordance"][()], (image_size, image_size), interpolation=cv2.INTER_AREA)
+    """(C, S, S) float32 in [-1, 1] of a stored episode: RGB, affordance, optional depth."""
+    depth = (g["depth"][()] if "depth" in g else None) if use_depth else None
+    return observation_from_arrays(g["rgb"][()], g["affordance"][()], depth, image_size, use_depth)
+
+
+def observation_from_arrays(rgb: np.ndarray, affordance: np.ndarray, depth: np.ndarray | None, image_size: int,
+                            use_depth: bool) -> np.ndarray:
+    """The network input from images (also a live camera's, in closed-loop replay)."""
+    rgb = cv2.resize(rgb, (image_size, image_size), interpolation=cv2.INTER_AREA)
+    aff = cv2.resize(affordance, (image_size, image_size), interpolation=cv2.INTER_AREA)
     chans = [rgb.transpose(2, 0, 1).astype(np.float32) / 127.5 - 1.0, aff[None] * 2.0 - 1.0]
     if use_depth:
-        d = g["depth"][()] if "depth" in g else np.full(g["rgb"].shape[:2], np.nan, np.float32)
+        d = depth if depth is not None else np.full(rgb.shape[:2], np.nan, np.float32)
         d = cv2.resize(np.nan_to_num(d, nan=0.0), (image_size, image_size), interpolation=cv2.INTER_NEAREST)
         chans.append(np.clip(d / DEPTH_SCALE_M - 1.0, -1, 1)[None])
     return np.concatenate(chans).astype(np.float32)

@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from . import schema
-from .data import Normalizer, observation
+from .data import Normalizer, observation, observation_from_arrays
 from .errors import AdlError, run_cli
 from .split import load_split, write_json_atomic
 from .train import load_policy
@@ -38,6 +38,27 @@ def _replay_one(job: tuple) -> tuple[str, str, bool]:
     spec = spec_from_objects(task, names, objects)
     ok, _ = replay_trajectory(spec, traj3d, duration)
     return label, task, ok
+
+
+def _closed_loop_one(job: tuple) -> tuple[str, str, bool]:
+    """Closed-loop replay of one episode with one model (runs in a pool process: loads the model itself)."""
+    from .sim.episode import replay_closed_loop, spec_from_objects
+
+    label, model_dir, ep, steps, execute, seed = job
+    torch.set_num_threads(1)
+    policy, ck = load_policy(Path(model_dir) / "model.pt")
+    norm = Normalizer(ck["stats"])
+    gen = torch.Generator().manual_seed(seed)
+    size = ep.rgb.shape[0]
+
+    def plan(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        obs = observation_from_arrays(rgb, ep.affordance, depth, policy.cfg.image_size, policy.cfg.use_depth)
+        pred = norm.unnormalize(policy.predict(torch.from_numpy(obs)[None], steps, None, gen))
+        return pred[0, :, 2:].numpy()
+
+    spec = spec_from_objects(ep.task, ep.object_names, ep.objects)
+    ok, _ = replay_closed_loop(spec, plan, ep.duration_s, len(ep.traj3d), execute, size)
+    return label, ep.task, ok
 
 
 def predict_all(model_dir: Path, data: Path, names: list[str], steps: int | None, seed: int) -> tuple[str, np.ndarray]:
@@ -66,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-episodes", type=int, help="replay at most this many test episodes")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--closed-loop", type=int, metavar="TA", default=0,
+                   help="closed loop: re-plan from a new camera image every TA waypoints (0: open loop, default)")
     p.add_argument("--metrics", type=Path, default=Path("metrics/replay.json"))
     p.add_argument("--table", type=Path, default=Path("reports/table2.md"))
     args = p.parse_args(argv)
@@ -86,15 +109,27 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             raise AdlError(f"{ep.source_path}: frames {sorted(unknown)} are not objects of the ADL world; "
                            "replay works on bags recorded by adlpipe.record")
-    trajs = {"demo": np.stack([ep.traj3d for ep in eps])}
-    for d in args.models:
-        label, pred = predict_all(d, args.data, names, args.steps, args.seed)
-        trajs[label] = pred
-    jobs = [(label, ep.name, ep.task, ep.object_names, ep.objects, traj[i], ep.duration_s)
-            for label, traj in trajs.items() for i, ep in enumerate(eps)]
+    if args.closed_loop:
+        worker = _closed_loop_one
+        jobs = []
+        for d in args.models:
+            kind = load_policy(d / "model.pt")[0].kind
+            steps = args.steps or DEFAULT_STEPS[kind]
+            label = f"{d.name}/closed-loop-{args.closed_loop}"
+            jobs += [(label, str(d), ep, steps, args.closed_loop, args.seed) for ep in eps]
+        if not jobs:
+            raise AdlError("--closed-loop needs --models")
+    else:
+        worker = _replay_one
+        trajs = {"demo": np.stack([ep.traj3d for ep in eps])}
+        for d in args.models:
+            label, pred = predict_all(d, args.data, names, args.steps, args.seed)
+            trajs[label] = pred
+        jobs = [(label, ep.name, ep.task, ep.object_names, ep.objects, traj[i], ep.duration_s)
+                for label, traj in trajs.items() for i, ep in enumerate(eps)]
     wins: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
-        for label, task, ok in tqdm(pool.map(_replay_one, jobs, chunksize=4), total=len(jobs), desc="replay",
+        for label, task, ok in tqdm(pool.map(worker, jobs, chunksize=4), total=len(jobs), desc="replay",
                                     unit="ep", file=sys.stderr, disable=None):
             wins[label][task].append(ok)
     result = {}
@@ -110,7 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     for label, r in result.items():
         cells = " | ".join(f"{100 * r['per_task'].get(t, float('nan')):.0f}" for t in tasks)
         lines.append(f"| {label} | {100 * r['overall']:.0f} | {cells} |")
-    title = "# Success rate (%) of open-loop execution in MuJoCo, test split\n\n"
+    mode = f"closed-loop (re-plan every {args.closed_loop} waypoints)" if args.closed_loop else "open-loop"
+    title = f"# Success rate (%) of {mode} execution in MuJoCo, test split\n\n"
     args.table.write_text(title + "\n".join(lines) + "\n")
     for label, r in result.items():
         print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} episodes")

@@ -118,6 +118,37 @@ class ArmController:
         return np.array([self.d.qpos[self.m.jnt_qposadr[self.m.joint(j).id]] for j in FINGER_JOINTS])
 
 
+def track_path(ctrl: ArmController, path_fn: Callable[[float], np.ndarray], duration: float,
+               on_step: Callable[[float], None] | None = None, control_hz: float = 250.0,
+               t_offset: float = 0.0) -> None:
+    """Track tcp(t) for `duration` seconds (the grasp rule active); on_step(t) after every physics step, with
+    t counted from t_offset (the start of the whole execution)."""
+    m, d = ctrl.m, ctrl.d
+    n_sub = max(1, round(1.0 / (control_hz * m.opt.timestep)))
+    t0 = d.time
+    for i in range(int(round(duration / m.opt.timestep))):
+        if i % n_sub == 0:
+            ctrl.set_target(path_fn(min(d.time - t0, duration)))
+            ctrl.auto_grasp()
+        mujoco.mj_step(m, d)
+        if on_step is not None:
+            on_step(t_offset + d.time - t0)
+
+
+def release_and_settle(ctrl: ArmController, hold: np.ndarray, settle: float = 0.4,
+                       on_step: Callable[[float], None] | None = None, t_offset: float = 0.0) -> None:
+    """Open the gripper (releasing what is held), hold the tcp at `hold` and let the scene settle."""
+    m, d = ctrl.m, ctrl.d
+    ctrl.release()
+    t0 = d.time
+    for i in range(int(round(settle / m.opt.timestep))):
+        if i % 8 == 0:
+            ctrl.set_target(hold)
+        mujoco.mj_step(m, d)
+        if on_step is not None:
+            on_step(t_offset + d.time - t0)
+
+
 def execute_path(
     ctrl: ArmController,
     path_fn: Callable[[float], np.ndarray],
@@ -130,21 +161,6 @@ def execute_path(
 
     on_step(t) is called after every physics step (recording, success bookkeeping).
     """
-    m, d = ctrl.m, ctrl.d
     ctrl.d.ctrl[len(ARM_JOINTS):] = 0.04  # start open
-    n_sub = max(1, round(1.0 / (control_hz * m.opt.timestep)))
-    n_steps = int(round((duration + settle) / m.opt.timestep))
-    t0 = d.time
-    for i in range(n_steps):
-        t = d.time - t0
-        if i % n_sub == 0:
-            if t <= duration:
-                ctrl.set_target(path_fn(min(t, duration)))
-                ctrl.auto_grasp()
-            else:
-                if ctrl.held is not None:
-                    ctrl.release()
-                ctrl.set_target(path_fn(duration))
-        mujoco.mj_step(m, d)
-        if on_step is not None:
-            on_step(d.time - t0)
+    track_path(ctrl, path_fn, duration, on_step, control_hz)
+    release_and_settle(ctrl, path_fn(duration), settle, on_step, t_offset=duration)

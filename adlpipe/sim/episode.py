@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 
 from ..geometry import project
-from .controller import ArmController, execute_path
+from .controller import ArmController, execute_path, release_and_settle, track_path
 from .tasks import TASKS, Scene, SuccessMonitor, Task
 from .world import ARM_JOINTS, FINGER_JOINTS, HOME_TCP, SceneSpec, build_mjcf
 
@@ -219,6 +219,34 @@ def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -
     fn = waypoint_path(np.asarray(waypoints, float), duration)
     execute_path(ctrl, fn, duration, on_step=on_step)
     return monitor.success(), np.array(path)
+
+
+def replay_closed_loop(spec: SceneSpec, plan: Callable[[np.ndarray, np.ndarray], np.ndarray], duration: float,
+                       n_waypoints: int, execute: int, image_size: int) -> tuple[bool, int]:
+    """Closed loop: render the scene, plan a whole trajectory (plan(rgb, depth) -> (N, 3) waypoints, timed from
+    the episode start like the training targets), execute the next `execute` waypoint intervals of it, re-plan from
+    a new image, ... The policy sees the scene as it is now (a knocked or slipped object changes the plan).
+    Returns (success, number of plans)."""
+    task = TASKS[spec.task]
+    ctrl, scene = make_scene(spec, image_size, image_size)
+    camera = RgbdCamera(ctrl.m, image_size, image_size)
+    monitor = SuccessMonitor(task, scene)
+    dt = duration / (n_waypoints - 1)
+    ctrl.d.ctrl[len(ARM_JOINTS):] = 0.04
+    plans, k, waypoints = 0, 0, None
+    try:
+        while k < n_waypoints - 1:
+            rgb, depth = camera.render(ctrl.d)
+            waypoints = np.asarray(plan(rgb, depth), float)
+            plans += 1
+            end = min(k + execute, n_waypoints - 1)
+            seg = waypoints[k:end + 1]
+            track_path(ctrl, waypoint_path(seg, (end - k) * dt), (end - k) * dt, lambda _t: monitor.step())
+            k = end
+        release_and_settle(ctrl, waypoints[-1], on_step=lambda _t: monitor.step())
+    finally:
+        camera.close()
+    return monitor.success(), plans
 
 
 def spec_from_objects(task: str, names: list[str], poses: np.ndarray) -> SceneSpec:
