@@ -77,6 +77,7 @@ def predict_all(model_dir: Path, data: Path, names: list[str], steps: int | None
 
 def main(argv: list[str] | None = None) -> int:
     from .sim.tasks import TASKS
+    from .sim.world import SCENE_OBJECTS
 
     p = argparse.ArgumentParser(prog="python -m adlpipe.replay", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -102,10 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     for ep in eps:
         if ep.task not in TASKS:
             raise AdlError(f"{ep.source_path}: task {ep.task!r} is not a task of the MuJoCo ADL world")
-        from .sim.world import GRASPABLE
-
-        unknown = set(ep.object_names) - set(TASKS) - {"manikin", "dustpan", "rack", "plate", "bowl", "bottle",
-                                                        "trash", *GRASPABLE}
+        unknown = set(ep.object_names) - SCENE_OBJECTS
         if unknown:
             raise AdlError(f"{ep.source_path}: frames {sorted(unknown)} are not objects of the ADL world; "
                            "replay works on bags recorded by adlpipe.record")

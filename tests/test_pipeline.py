@@ -115,3 +115,14 @@ def test_inspect_writes_a_readable_rerun_recording(pipeline: Path, tmp_path: Pat
     gt3d = np.array(strips["/world/gt"][0][0])
     assert gt3d.shape == (32, 3) and np.all(np.abs(gt3d) < 2.0)  # metres in the base frame
     assert [e.kind for e in reader.blueprints()] == ["blueprint"]
+
+
+def test_closed_loop_replay_replans_from_new_images(pipeline: Path, tmp_path: Path) -> None:
+    metrics = tmp_path / "cl.json"
+    proc = run_module("replay", "--models", pipeline / "models" / "fm_cnn", "--data", pipeline / "data" / "adl.h5",
+                      "--closed-loop", "8", "--max-episodes", "3", "--workers", "1", "--metrics", metrics,
+                      "--table", tmp_path / "cl.md", check=True)
+    assert "fm_cnn/closed-loop-8: success" in proc.stdout
+    result = json.loads(metrics.read_text())["success"]
+    assert list(result) == ["fm_cnn/closed-loop-8"] and result["fm_cnn/closed-loop-8"]["n"] == 3
+    assert "closed-loop (re-plan every 8 waypoints)" in (tmp_path / "cl.md").read_text()

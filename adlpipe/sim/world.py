@@ -172,6 +172,7 @@ _PROPS = {
     'conaffinity="0"/>',
 }
 GRASPABLE = set(_OBJECTS) - {"trash"}
+SCENE_OBJECTS = set(_OBJECTS) | set(_PROPS) | {"manikin"}  # the frames a scene can be rebuilt from
 
 
 def build_mjcf(spec: SceneSpec, width: int = 224, height: int = 224, markers: list | None = None) -> str:
