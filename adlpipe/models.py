@@ -25,7 +25,7 @@ MODELS = {  # name -> (objective, network)
     "dp_cnn": ("ddpm", "unet"),
     "bc_transformer": ("mse", "transformer_regressor"),
 }
-DEFAULT_METHOD = {"fm": "euler", "ddpm": "ddim", "mse": "direct"}
+DEFAULT_METHOD = {"fm": "euler", "ddpm": "ddpm", "mse": "direct"}  # DDPM-16 beat DDIM-16 here (5.0 vs 10.3 px)
 
 
 @dataclass(frozen=True)

@@ -28,13 +28,14 @@ def comparisons(ev: dict) -> list[str]:
     """The paper's claims as measured here: FM-1 ~ DP-16 << BC in error, FM-1 << DP-16 in time."""
     m = ev["models"]
     fm1 = _row(m, "fm_cnn", "euler", 1)
-    dp16 = _row(m, "dp_cnn", "ddim", 16) or _row(m, "dp_cnn", "ddpm", 16)
     bc = _row(m, "bc_transformer", "direct", 1)
     out = []
-    if fm1 and dp16:
-        out.append(f"- FM-CNN 1 step vs DP-CNN 16 steps: {fm1['px']:.2f} vs {dp16['px']:.2f} px "
-                   f"({100 * (fm1['px'] / dp16['px'] - 1):+.0f}%), {fm1['cm']:.2f} vs {dp16['cm']:.2f} cm; "
-                   f"{fm1['ms']:.1f} vs {dp16['ms']:.1f} ms (DP-16 / FM-1 = {dp16['ms'] / fm1['ms']:.1f}x)")
+    for sampler in ("ddpm", "ddim"):
+        dp16 = _row(m, "dp_cnn", sampler, 16)
+        if fm1 and dp16:
+            out.append(f"- FM-CNN 1 step vs DP-CNN 16 {sampler.upper()} steps: {fm1['px']:.2f} vs {dp16['px']:.2f} px "
+                       f"({100 * (fm1['px'] / dp16['px'] - 1):+.0f}%), {fm1['cm']:.2f} vs {dp16['cm']:.2f} cm; "
+                       f"{fm1['ms']:.1f} vs {dp16['ms']:.1f} ms (DP-16 / FM-1 = {dp16['ms'] / fm1['ms']:.1f}x)")
     if fm1 and bc:
         mm = (f"; multimodal tasks {fm1['px_multimodal']:.2f} vs {bc['px_multimodal']:.2f} px"
               if fm1.get("px_multimodal") is not None and bc.get("px_multimodal") is not None else "")

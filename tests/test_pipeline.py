@@ -9,6 +9,7 @@ import json
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,11 @@ MODELS = ["fm_cnn", "fm_transformer", "dp_cnn", "bc_transformer"]
 
 
 def dvc(cwd: Path, *args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "DVC_NO_ANALYTICS": "1"}
-    proc = subprocess.run(["dvc", *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=900)
+    # The stages call `python -m adlpipe...`: the python running the tests must come first on PATH (a venv).
+    path = f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"
+    env = {**os.environ, "DVC_NO_ANALYTICS": "1", "PATH": path}
+    proc = subprocess.run([sys.executable, "-m", "dvc", *args], cwd=cwd, capture_output=True, text=True, env=env,
+                          timeout=900)
     assert proc.returncode == 0, f"dvc {' '.join(args)} failed:\n{proc.stdout}\n{proc.stderr}"
     return proc
 
@@ -58,7 +62,7 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
         hist = (pipeline / "metrics" / "train" / f"{model}.csv").read_text().splitlines()
         assert hist[0].startswith("epoch,step,train_loss,test_loss") and len(hist) == 3
     report = (pipeline / "reports" / "report.md").read_text()
-    assert "## Success rate" in report and "FM-CNN 1 step vs DP-CNN 16 steps" in report
+    assert "## Success rate" in report and "FM-CNN 1 step vs DP-CNN 16 DDPM steps" in report
 
 
 def test_the_demonstrations_replay_successfully(pipeline: Path) -> None:

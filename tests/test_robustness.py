@@ -38,7 +38,7 @@ def small_bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return out
 
 
-@settings(max_examples=150, deadline=None, derandomize=True,
+@settings(max_examples=300, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(fmt=st.sampled_from(["mcap", "mcap", "bag", "db3"]), mutation=st.sampled_from(MUTATIONS),
        seed=st.integers(0, 2**32 - 1), recover=st.booleans())

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from .world import TOOL_LENGTH, SceneSpec
+from .world import DUSTPAN_HALF, TOOL_LENGTH, SceneSpec
 
 TASK_NAMES = [
     "sweep the trash", "pass the water", "hang the towel", "put on the hat", "cover the food",
@@ -89,19 +89,27 @@ def _v(*xyz: float) -> np.ndarray:
 
 # --- object tasks -------------------------------------------------------------------------------------------
 def _sweep_objects(rng: np.random.Generator) -> dict:
-    tx, ty = _u(rng, -0.15, 0.15), _u(rng, 0.26, 0.34)
+    tx, ty = _u(rng, -0.10, 0.10), _u(rng, 0.26, 0.34)
     return {"trash": _pose(tx, ty), "dustpan": _pose(tx + _u(rng, -0.03, 0.03), ty - _u(rng, 0.14, 0.18))}
 
 
 def _sweep_plan(s: Scene) -> list:
     t, dp = s.body("trash"), s.body("dustpan")
+    side = 0.14 * s.mode  # go round the trash, low, on the left or the right: the average of both hits it
     return [
-        (_v(t[0] + 0.13 * s.mode, t[1] - 0.02, 0.09), 0.0),  # round the trash on the left or the right
-        (_v(t[0], t[1] + 0.06, 0.07), 0.0),
-        (_v(t[0], t[1] + 0.045, 0.012), 0.1),
+        (_v(t[0] + side, t[1] - 0.02, 0.025), 0.0),
+        (_v(t[0] + side, t[1] + 0.065, 0.025), 0.0),
+        (_v(t[0], t[1] + 0.065, 0.025), 0.0),
+        (_v(t[0], t[1] + 0.065, 0.012), 0.1),
         (_v(dp[0], dp[1] + 0.025, 0.012), 0.1),
         (_v(dp[0], dp[1] + 0.04, 0.08), 0.0),
     ]
+
+
+def _in_dustpan(s: Scene) -> bool:
+    """The trash's centre lies on the dustpan's footprint."""
+    d = s.body("trash") - s.body("dustpan")
+    return abs(d[0]) < DUSTPAN_HALF[0] and abs(d[1]) < DUSTPAN_HALF[1]
 
 
 def _pass_objects(rng: np.random.Generator) -> dict:
@@ -176,7 +184,7 @@ def _cover_plan(s: Scene) -> list:
         (g + _v(0, 0, 0.06), 0.0),
         (g, 0.15),
         (g + _v(0, 0, 0.10), 0.0),
-        (_v(b[0], b[1] + 0.12 * s.mode, g[2] + 0.10), 0.0),  # pass the bottle on either side
+        (_v(b[0], b[1] + 0.15 * s.mode, g[2] + 0.10), 0.0),  # pass the bottle on either side (it blocks the middle)
         (tgt + _v(0, 0, 0.06), 0.0),
         (tgt, 0.15),
     ]
@@ -252,7 +260,7 @@ TASKS: dict[str, Task] = {
     t.name: t
     for t in [
         Task("sweep the trash", "broom", True, _sweep_objects, _sweep_plan,
-             placed=lambda s: _xy_dist(s.body("trash"), s.body("dustpan")) < 0.05),
+             placed=lambda s: _in_dustpan(s)),
         Task("pass the water", None, True, _pass_objects, _pass_plan,
              placed=lambda s: _xy_dist(s.body("cup"), _hand_place(s)) < 0.06 and s.upright("cup") > 0.9),
         Task("hang the towel", None, True, _towel_objects, _towel_plan,

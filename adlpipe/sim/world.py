@@ -11,6 +11,7 @@ TABLE_TOP_Z = 0.0
 SHOULDER_Z = 0.32
 HAND_DOWN_QUAT = (0.0, 1.0, 0.0, 0.0)  # hand z-axis pointing down (180 deg about x), as a wxyz quaternion
 MARKER_GROUP = 5
+DUSTPAN_HALF = (0.07, 0.05)
 HOME_TCP = np.array([0.0, 0.22, 0.22])
 CAMERA_POS = np.array([0.80, -0.40, 0.95])
 CAMERA_LOOKAT = np.array([0.0, 0.30, 0.22])
@@ -160,16 +161,15 @@ _OBJECTS = {
 }
 # Static props: name -> geoms.
 _PROPS = {
-    "dustpan": '<geom type="box" size="0.06 0.05 0.001" pos="0 0 0.001" rgba="0.2 0.7 0.3 1" contype="0" '
-    'conaffinity="0"/>',
+    "dustpan": f'<geom type="box" size="{DUSTPAN_HALF[0]} {DUSTPAN_HALF[1]} 0.001" pos="0 0 0.001" '
+    'rgba="0.2 0.7 0.3 1" contype="0" conaffinity="0"/>',
     "rack": '<geom type="box" size="0.12 0.05 0.004" pos="0 0 0.20" rgba="0.5 0.35 0.2 1"/>'
     '<geom type="cylinder" size="0.01 0.098" pos="0.1 0 0.098" rgba="0.5 0.35 0.2 1"/>'
     '<geom type="cylinder" size="0.01 0.098" pos="-0.1 0 0.098" rgba="0.5 0.35 0.2 1"/>',
     "plate": '<geom type="cylinder" size="0.075 0.006" pos="0 0 0.006" rgba="1 1 1 1"/>'
     '<geom type="sphere" size="0.035" pos="0 0 0.006" rgba="0.8 0.5 0.1 1" contype="0" conaffinity="0"/>',
     "bowl": '<geom type="cylinder" size="0.05 0.025" pos="0 0 0.025" rgba="0.9 0.6 0.3 1"/>',
-    "bottle": '<geom type="cylinder" size="0.03 0.09" pos="0 0 0.09" rgba="0.1 0.5 0.2 1" contype="0" '
-    'conaffinity="0"/>',
+    "bottle": '<geom type="cylinder" size="0.03 0.09" pos="0 0 0.09" rgba="0.1 0.5 0.2 1"/>',
 }
 GRASPABLE = set(_OBJECTS) - {"trash"}
 SCENE_OBJECTS = set(_OBJECTS) | set(_PROPS) | {"manikin"}  # the frames a scene can be rebuilt from
