@@ -21,7 +21,7 @@ from .topics import TopicMap
 
 BASE_TIME_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z; episode k starts k*100 s later (deterministic bags)
 CAMERA_FRAME = "camera_color_optical_frame"
-MAX_ATTEMPTS = 8  # a demonstration whose success predicate fails is re-sampled, as a human operator would redo it
+MAX_ATTEMPTS = 8  # a demonstration whose success predicate still fails is re-sampled, as an operator would redo it
 
 
 def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
@@ -98,14 +98,15 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
 
 
 def _record_one(job: tuple) -> tuple[str, int, bool]:
-    from .sim.episode import record_demo
+    from .sim.episode import record_demo, sample_balanced_scene
     from .sim.tasks import TASK_NAMES
 
     task, idx, out, seed, fmt, image_format, depth_format, size, camera_hz = job
     ti = TASK_NAMES.index(task)
     for attempt in range(MAX_ATTEMPTS):
         rng = np.random.default_rng([seed, ti, idx, attempt])
-        st = record_demo(task, rng, size, size, camera_hz=camera_hz)
+        spec = sample_balanced_scene(task, rng)
+        st = record_demo(task, rng, size, size, camera_hz=camera_hz, spec=spec)
         if st.success:
             break
     path = Path(out) / f"{task.replace(' ', '_')}_{idx:04d}{FORMATS[fmt]}"

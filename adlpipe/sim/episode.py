@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import mujoco
 import numpy as np
@@ -158,11 +158,40 @@ def touched_points(task: Task, scene: Scene) -> np.ndarray:
     return np.array([p for p, dwell in task.plan(scene) if dwell > 0])
 
 
-def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, height: int = 224,
-                camera_hz: float = 15.0, joint_hz: float = 100.0, tf_hz: float = 50.0) -> Streams:
-    """Sample a scene, run the scripted demonstrator and record every stream (renders RGB-D at camera_hz)."""
+def demo_succeeds(spec: SceneSpec) -> bool:
+    """Run the demonstrator on a scene without recording anything: does its success predicate hold?"""
+    task = TASKS[spec.task]
+    ctrl, scene = make_scene(spec, 16, 16)
+    path, duration = keypoint_path(HOME_TCP.copy(), task.tcp_keypoints(scene))
+    monitor = SuccessMonitor(task, scene)
+    execute_path(ctrl, path, duration, on_step=lambda _t: monitor.step())
+    return monitor.success()
+
+
+def sample_balanced_scene(task_name: str, rng: np.random.Generator, max_attempts: int = 8) -> SceneSpec:
+    """A scene in which the demonstrator succeeds in every mode; its mode is then drawn at random.
+
+    Re-drawing a scene only when the chosen mode fails would make the accepted mode depend on the scene (the side
+    that fails more often near an edge would be rarer there), which a regressor could learn: the modes would no
+    longer be ambiguous. Accepting scenes where all modes work keeps P(mode | scene) = 1/2.
+    """
     task = TASKS[task_name]
     spec = task.sample(rng)
+    for _ in range(max_attempts):
+        modes = (-1.0, 1.0) if task.multimodal else (1.0,)
+        if all(demo_succeeds(replace(spec, extras={**spec.extras, "mode": m})) for m in modes):
+            break
+        spec = task.sample(rng)
+    return replace(spec, extras={**spec.extras, "mode": float(rng.choice([-1.0, 1.0])) if task.multimodal else 1.0})
+
+
+def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, height: int = 224,
+                camera_hz: float = 15.0, joint_hz: float = 100.0, tf_hz: float = 50.0,
+                spec: SceneSpec | None = None) -> Streams:
+    """Run the scripted demonstrator in a scene (sampled from rng unless given) and record every stream
+    (renders RGB-D at camera_hz)."""
+    task = TASKS[task_name]
+    spec = spec or task.sample(rng)
     ctrl, scene = make_scene(spec, width, height)
     m, d = ctrl.m, ctrl.d
     keypoints = task.tcp_keypoints(scene)
