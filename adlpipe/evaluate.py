@@ -55,8 +55,9 @@ def latency_ms(policy, obs: torch.Tensor, steps: int, method: str, repeats: int)
     return statistics.median(times)
 
 
-def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: list[int], methods: list[str] | None,
-                   k: int, repeats: int, seed: int) -> dict:
+def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: list[int],
+                   methods_by_kind: dict[str, list[str]], k: int, repeats: int, seed: int) -> dict:
+    """methods_by_kind: the samplers to evaluate for each objective ("fm", "ddpm"); others use their default."""
     policy, ck = load_policy(model_dir / "model.pt")
     cfg = policy.cfg
     ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth)
@@ -64,9 +65,9 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
     obs = torch.stack([ds[i][0] for i in range(len(ds))])
     gt = norm.unnormalize(torch.stack([ds[i][1] for i in range(len(ds))]))
     tasks = [ds.task(i) for i in range(len(ds))]
+    methods = methods_by_kind.get(policy.kind) or [policy.default_method]
     if policy.kind == "mse":
-        steps_list, methods = [1], ["direct"]
-    methods = methods or [policy.default_method]
+        steps_list = [1]
     rows = {}
     for method in methods:
         for steps in steps_list:
@@ -158,10 +159,9 @@ def main(argv: list[str] | None = None) -> int:
     for d in args.models:
         if not (d / "model.pt").exists():
             raise AdlError(f"{d}: no model.pt; train it first (python -m adlpipe.train)")
-        kind = load_policy(d / "model.pt")[0].kind
-        methods = args.fm_methods if kind == "fm" else args.dp_methods if kind == "ddpm" else None
-        results[d.name] = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
-                                         args.seed)
+        results[d.name] = evaluate_model(d, args.data, split["test"], args.steps,
+                                         {"fm": args.fm_methods, "ddpm": args.dp_methods}, args.best_of,
+                                         args.repeats, args.seed)
         best = min(results[d.name].values(), key=lambda r: r["px"])
         print(f"{d.name}: best {best['px']:.2f} px / {best['cm']:.2f} cm ({best['method']}, {best['steps']} steps)")
     for path in (args.metrics, args.plots, args.table):

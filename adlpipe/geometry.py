@@ -19,6 +19,24 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     ])
 
 
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """3x3 rotation -> wxyz quaternion (Shepperd's method)."""
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = [0.0] * 4
+        q[0] = (R[k, j] - R[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + k] = (R[k, i] + R[i, k]) / s
+    return np.asarray(q)
+
+
 def pose_matrix(pos: np.ndarray, quat_wxyz: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = quat_to_matrix(quat_wxyz)

@@ -30,7 +30,7 @@ from tqdm import tqdm
 from . import schema
 from .bags.reader import BagSource
 from .errors import AdlError, run_cli
-from .geometry import TfBuffer, pose_matrix, project, resample, scale_intrinsics
+from .geometry import TfBuffer, matrix_to_quat, pose_matrix, project, resample, scale_intrinsics
 from .images import decode_image, depth_to_metres
 from .topics import TopicMap
 
@@ -292,7 +292,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
             continue
         T = tf.lookup(tm.base_frame, child, t)
         names.append(child)
-        poses.append(np.concatenate([T[:3, 3], _matrix_to_quat(T[:3, :3])]))
+        poses.append(np.concatenate([T[:3, 3], matrix_to_quat(T[:3, :3])]))
 
     ep = schema.Episode(
         task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=src.kind,
@@ -304,24 +304,6 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         joint_names=joint_names, note=note,
     )
     return ep, note
-
-
-def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """3x3 rotation -> wxyz quaternion (Shepperd's method)."""
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = [0.0] * 4
-        q[0] = (R[k, j] - R[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (R[j, i] + R[i, j]) / s
-        q[1 + k] = (R[k, i] + R[i, k]) / s
-    return np.asarray(q)
 
 
 def _worker(job: tuple) -> tuple[str, schema.Episode | None, str, str | None]:

@@ -17,19 +17,12 @@ from tqdm import tqdm
 from .bags import messages as M
 from .bags.writer import FORMATS, BagWriter
 from .errors import AdlError, run_cli
+from .geometry import matrix_to_quat
 from .topics import TopicMap
 
 BASE_TIME_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z; episode k starts k*100 s later (deterministic bags)
 CAMERA_FRAME = "camera_color_optical_frame"
 MAX_ATTEMPTS = 8  # a demonstration whose success predicate still fails is re-sampled, as an operator would redo it
-
-
-def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    import mujoco
-
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R).reshape(9))
-    return q
 
 
 def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format: str, episode_index: int,
@@ -41,7 +34,7 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
     f = w.msgs
     try:
         events: list[tuple[int, int, str, str, object]] = []  # (t_ns, order, topic, type, builder)
-        cam_q = _quat_from_matrix(st.T_base_camera[:3, :3])
+        cam_q = matrix_to_quat(st.T_base_camera[:3, :3])
         statics = [(topics.base_frame, CAMERA_FRAME, st.T_base_camera[:3, 3], cam_q)]
         for name, (x, y, z, yaw) in st.spec.poses.items():
             if name == "manikin" or not any(name in o for _, o in st.objects[:1]):

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import mujoco
 import numpy as np
 
-from .world import ARM_JOINTS, FINGER_JOINTS, GRASPABLE, HOME_Q, HOME_TCP
+from .world import ARM_JOINTS, GRASPABLE, HOME_Q, HOME_TCP
 
 GRASP_RADIUS = 0.035  # tcp within this distance of an object's grasp site closes the gripper on it
 TARGET_ROT = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # hand z down, x along world x
@@ -113,9 +113,6 @@ class ArmController:
             if dist < GRASP_RADIUS and dist >= prev - 1e-5:
                 self.grasp(obj)
                 return
-
-    def finger_qpos(self) -> np.ndarray:
-        return np.array([self.d.qpos[self.m.jnt_qposadr[self.m.joint(j).id]] for j in FINGER_JOINTS])
 
 
 def track_path(ctrl: ArmController, path_fn: Callable[[float], np.ndarray], duration: float,

@@ -244,7 +244,7 @@ def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -
         monitor.step()
         path.append(ctrl.tcp_pos)
 
-    # Start where the trajectory starts: the arm moves there from home first, like the demonstrator's start.
+    # The arm starts at home, as in the demonstrations, whose first waypoint is the home pose.
     fn = waypoint_path(np.asarray(waypoints, float), duration)
     execute_path(ctrl, fn, duration, on_step=on_step)
     return monitor.success(), np.array(path)
