@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import os
 import statistics
 import sys
 import time
@@ -22,9 +21,10 @@ import h5py
 import torch
 
 from . import schema
+from .atomic import atomic_path, write_json_atomic, write_text_atomic
 from .data import Normalizer, TrajectoryDataset
 from .errors import AdlError, run_cli
-from .split import load_split, write_json_atomic
+from .split import load_split
 from .train import load_policy
 
 STEPS = [1, 2, 4, 8, 16]
@@ -115,8 +115,7 @@ def write_steps_csv(path: Path, results: dict[str, dict], steps_list: list[int])
         for r in rows.values():
             series.setdefault(f"{model}_{r['method']}", {})[r["steps"]] = r
     cols = [f"{name}_{m}" for name in series for m in ("px", "cm", "ms")]
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["steps", *cols])
         for k in steps_list:
@@ -125,7 +124,6 @@ def write_steps_csv(path: Path, results: dict[str, dict], steps_list: list[int])
                 r = by_steps.get(k) or by_steps[min(by_steps)]
                 row += [f"{r['px']:.4f}", f"{r['cm']:.4f}", f"{r['ms']:.3f}"]
             w.writerow(row)
-    os.replace(tmp, path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -168,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
         path.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.metrics, {"n_test": len(split["test"]), "best_of": args.best_of, "models": results})
     write_steps_csv(args.plots, results, args.steps)
-    args.table.write_text("# Trajectory error and inference time on the test split\n\n" + table1(results, args.best_of))
+    title = "# Trajectory error and inference time on the test split\n\n"
+    write_text_atomic(args.table, title + table1(results, args.best_of))
     print(f"wrote {args.metrics}, {args.plots}, {args.table}")
     return 0
 

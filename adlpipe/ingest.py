@@ -28,6 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from . import schema
+from .atomic import atomic_path
 from .bags.reader import BagSource
 from .errors import AdlError, run_cli
 from .geometry import TfBuffer, matrix_to_quat, pose_matrix, project, resample, scale_intrinsics
@@ -396,8 +397,7 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
     if not new:
         return counts  # nothing to add: the file stays exactly as it was
     remove_stale_temps(output)
-    tmp = output.with_name(f".{output.name}.tmp{os.getpid()}")
-    try:
+    with atomic_path(output) as tmp:
         if output.exists():
             shutil.copy2(output, tmp)
         with h5py.File(tmp, "a") as f:
@@ -405,10 +405,6 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
                 schema.create_file(f, n_waypoints, size)
             for ep in new.values():
                 schema.write_episode(f, ep)
-        os.replace(tmp, output)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return counts
 
 

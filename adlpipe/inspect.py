@@ -11,7 +11,6 @@ and predicted 2D trajectories as line strips on the image, the 3D trajectories i
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -23,6 +22,7 @@ import rerun.blueprint as rrb
 import torch
 
 from . import schema
+from .atomic import atomic_path
 from .data import Normalizer, observation
 from .errors import AdlError, run_cli
 from .split import load_split
@@ -48,9 +48,13 @@ def blueprint() -> rrb.Blueprint:
 
 def write_recording(out: Path, episodes: list[schema.Episode], preds: list[np.ndarray], model: str) -> None:
     """preds[i]: (K, N, 5) samples (u, v, x, y, z) for episodes[i]. Written to a temp file, then renamed."""
+    with atomic_path(out) as tmp:
+        _record(tmp, episodes, preds, model)
+
+
+def _record(path: Path, episodes: list[schema.Episode], preds: list[np.ndarray], model: str) -> None:
     rec = rr.RecordingStream("adlpipe_inspect")
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
-    rec.save(tmp, default_blueprint=blueprint())
+    rec.save(path, default_blueprint=blueprint())
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     for i, (ep, pred) in enumerate(zip(episodes, preds, strict=True)):
         rec.set_time("episode", sequence=i)
@@ -69,7 +73,6 @@ def write_recording(out: Path, episodes: list[schema.Episode], preds: list[np.nd
         rec.log("world/task", rr.TextDocument(f"{ep.task}\n{ep.source_path}"))
     rec.flush()
     rec.disconnect()
-    os.replace(tmp, out)
 
 
 def main(argv: list[str] | None = None) -> int:

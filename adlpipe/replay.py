@@ -23,9 +23,10 @@ import torch
 from tqdm import tqdm
 
 from . import schema
+from .atomic import write_json_atomic, write_text_atomic
 from .data import Normalizer, observation, observation_from_arrays
 from .errors import AdlError, run_cli
-from .split import load_split, write_json_atomic
+from .split import load_split
 from .train import load_policy
 
 DEFAULT_STEPS = {"fm": 1, "ddpm": 16, "mse": 1}
@@ -145,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {label} | {100 * r['overall']:.0f} | {cells} |")
     mode = f"closed-loop (re-plan every {args.closed_loop} waypoints)" if args.closed_loop else "open-loop"
     title = f"# Success rate (%) of {mode} execution in MuJoCo, test split\n\n"
-    args.table.write_text(title + "\n".join(lines) + "\n")
+    write_text_atomic(args.table, title + "\n".join(lines) + "\n")
     for label, r in result.items():
         print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} episodes")
     return 0

@@ -10,6 +10,7 @@ import json
 import sys
 from pathlib import Path
 
+from .atomic import write_text_atomic
 from .errors import AdlError, run_cli
 
 
@@ -58,8 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     for t in (args.table1, args.table2):
         if t.exists():
             parts += [t.read_text().replace("# ", "## ", 1), ""]
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text("\n".join(parts))
+    write_text_atomic(args.output, "\n".join(parts))
     print("\n".join(comparisons(ev)))
     return 0
 

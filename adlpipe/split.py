@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -16,6 +15,7 @@ import h5py
 import numpy as np
 
 from . import schema
+from .atomic import write_json_atomic
 from .errors import AdlError, run_cli
 
 
@@ -37,12 +37,6 @@ def make_split(tasks: dict[str, str], test_fraction: float, seed: int) -> dict[s
         test += order[:n_test]
         train += order[n_test:]
     return {"train": sorted(train), "test": sorted(test)}
-
-
-def write_json_atomic(path: Path, obj: object) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
 
 
 def load_split(path: Path) -> dict:

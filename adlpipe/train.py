@@ -14,9 +14,7 @@ from __future__ import annotations
 import argparse
 import copy
 import csv
-import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -25,6 +23,7 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from .atomic import atomic_path, write_json_atomic
 from .data import TrajectoryDataset, compute_stats
 from .errors import AdlError, run_cli
 from .models import MODELS, PRESET_LR, PRESETS, ModelConfig, Policy, preset
@@ -63,9 +62,8 @@ class EMA:
 
 
 def save_atomic(obj: dict, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def load_checkpoint(path: Path) -> dict:
@@ -162,16 +160,13 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     save_atomic({"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats, "history": history,
                  "hparams": hparams}, out / "model.pt")
     if log_csv is not None:
-        log_csv.parent.mkdir(parents=True, exist_ok=True)
-        tmp = log_csv.with_name(f".{log_csv.name}.tmp")
-        with open(tmp, "w", newline="") as f:
+        with atomic_path(log_csv) as tmp, open(tmp, "w", newline="") as f:
             w = csv.DictWriter(f, LOG_FIELDS)
             w.writeheader()
             w.writerows(history)
-        os.replace(tmp, log_csv)
     final = {"model": cfg.model, "epochs": epochs, "train_loss": history[-1]["train_loss"],
              "test_loss": history[-1]["test_loss"], "seconds": sum(r["seconds"] for r in history)}
-    (out / "metrics.json").write_text(json.dumps(final, indent=1) + "\n")
+    write_json_atomic(out / "metrics.json", final)
     return final
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import signal
 import subprocess
@@ -22,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from adlpipe import schema
+from adlpipe.atomic import atomic_path, write_json_atomic
 from adlpipe.errors import AdlError
 from adlpipe.images import decode_compressed, decode_raw
 
@@ -172,3 +174,13 @@ def test_hostile_task_names_become_safe_hdf5_names(tmp_path: Path) -> None:
     with pytest.raises(AdlError, match="control characters"):
         ingest([bag], tmp_path / "y.h5", TopicMap(), 32, 32)
     assert not (tmp_path / "y.h5").exists()
+
+
+def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path: Path) -> None:
+    target = tmp_path / "out" / "metrics.json"
+    write_json_atomic(target, {"px": 1.5})
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text('{"px": ')  # half-written, then the writer fails
+        raise RuntimeError("disk full")
+    assert json.loads(target.read_text()) == {"px": 1.5}
+    assert sorted(p.name for p in target.parent.iterdir()) == ["metrics.json"]  # no temp file left behind
