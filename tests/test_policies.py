@@ -88,6 +88,41 @@ def test_one_euler_step_of_a_straight_flow_is_exact() -> None:
     assert torch.allclose(x, torch.full_like(x, -0.2), atol=1e-6)
 
 
+class TwoModeFlow(torch.nn.Module):
+    """The exact velocity of the flow from N(0, I) to two equally likely trajectories +m and -m (an ambiguous
+    demonstration): v(x, t) = (E[x1 | x_t = x] - x) / (1 - t), the mode posterior from N(x; t m_k, (1-t)^2 I)."""
+
+    def __init__(self, m: torch.Tensor) -> None:
+        super().__init__()
+        self.modes = torch.stack([m, -m])
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        tt = (t / FlowMatching.TIME_SCALE)[:, None, None]
+        d2 = ((x[:, None] - tt[:, None] * self.modes[None]) ** 2).sum((2, 3))  # (B, 2)
+        w = torch.softmax(-d2 / (2 * (1 - tt[:, :, 0]) ** 2), dim=1)
+        return (torch.einsum("bk,ktd->btd", w, self.modes) - x) / (1 - tt)
+
+
+def test_one_euler_step_returns_the_mean_of_the_modes_like_mse_regression() -> None:
+    """Why FM-1 cannot beat a well-trained MSE regressor on mean per-waypoint error: with the exact velocity,
+    one Euler step returns E[x1 | obs] (here the average of the two modes, the MSE optimum), 16 steps commit to a
+    mode; against demonstrations drawn from the same two modes both have the same expected error."""
+    g = torch.Generator().manual_seed(0)
+    m = 0.5 * torch.sign(torch.randn((32, 5), generator=g))
+    net, n = TwoModeFlow(m), 4096
+    one = FlowMatching().sample(net, torch.zeros(n, 1), (n, 32, 5), 1, "euler", g)
+    many = FlowMatching().sample(net, torch.zeros(n, 1), (n, 32, 5), 16, "euler", g)
+    assert float(one.abs().max()) < 1e-6  # the average of +m and -m
+    to_mode = torch.stack([(many - m).norm(dim=2).mean(1), (many + m).norm(dim=2).mean(1)], 1)
+    assert float(to_mode.min(1).values.max()) < 0.05 * float(m.norm(dim=1).mean())  # every sample is near a mode
+    frac = float((to_mode[:, 0] < to_mode[:, 1]).float().mean())
+    assert 0.45 < frac < 0.55, frac  # the modes keep their weights
+    demos = torch.where(torch.rand(n, generator=g)[:, None, None] < 0.5, m, -m)
+    err_one = float((one - demos).norm(dim=2).mean())  # per-waypoint error, as evaluate reports it
+    err_many = float((many - demos).norm(dim=2).mean())
+    assert abs(err_many / err_one - 1) < 0.08, (err_one, err_many)  # sd of the ratio: 0.016
+
+
 @pytest.mark.parametrize("method", ["ddpm", "ddim"])
 @pytest.mark.parametrize("steps", [1, 2, 4, 8, 16])
 def test_diffusion_samplers_with_an_exact_noise_model(method: str, steps: int) -> None:
