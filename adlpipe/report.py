@@ -26,7 +26,8 @@ def _row(models: dict, model: str, method: str, steps: int) -> dict | None:
 
 
 def comparisons(ev: dict) -> list[str]:
-    """The paper's claims as measured here: FM-1 ~ DP-16 << BC in error, FM-1 << DP-16 in time."""
+    """The paper's claims as measured here: FM-1 ~ DP-16 << BC in error, FM-1 << DP-16 in time, and FM vs DP at
+    equal steps."""
     m = ev["models"]
     fm1 = _row(m, "fm_cnn", "euler", 1)
     bc = _row(m, "bc_transformer", "direct", 1)
@@ -41,6 +42,11 @@ def comparisons(ev: dict) -> list[str]:
         mm = (f"; multimodal tasks {fm1['px_multimodal']:.2f} vs {bc['px_multimodal']:.2f} px"
               if fm1.get("px_multimodal") is not None and bc.get("px_multimodal") is not None else "")
         out.append(f"- FM-CNN 1 step vs BC-Transformer: {fm1['px']:.2f} vs {bc['px']:.2f} px{mm}")
+    fm16, dp16 = _row(m, "fm_cnn", "euler", 16), _row(m, "dp_cnn", "ddpm", 16)
+    if fm16 and dp16:  # equal steps: the two generative objectives over the same U-Net
+        vs_bc = f"; BC-Transformer {bc['px']:.2f} px" if bc else ""
+        out.append(f"- 16 steps each, FM-CNN vs DP-CNN (DDPM): {fm16['px']:.2f} vs {dp16['px']:.2f} px "
+                   f"({100 * (fm16['px'] / dp16['px'] - 1):+.0f}%){vs_bc}")
     return out
 
 

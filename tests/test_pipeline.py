@@ -63,6 +63,7 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
         assert hist[0].startswith("epoch,step,train_loss,test_loss") and len(hist) == 3
     report = (pipeline / "reports" / "report.md").read_text()
     assert "## Success rate" in report and "FM-CNN 1 step vs DP-CNN 16 DDPM steps" in report
+    assert "16 steps each, FM-CNN vs DP-CNN (DDPM)" in report
 
 
 def test_the_demonstrations_replay_successfully(pipeline: Path) -> None:
