@@ -68,6 +68,9 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
     methods = methods_by_kind.get(policy.kind) or [policy.default_method]
     if policy.kind == "mse":
         steps_list = [1]
+    by_task = {t: [i for i, tt in enumerate(tasks) if tt == t] for t in sorted(set(tasks))}
+    multimodal = multimodal_tasks()
+    mm = [i for i, t in enumerate(tasks) if t in multimodal]
     rows = {}
     for method in methods:
         for steps in steps_list:
@@ -79,11 +82,8 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
             for _ in range(k - 1 if policy.kind != "mse" else 0):
                 p2, c2 = waypoint_errors(norm.unnormalize(policy.predict(obs, steps, method, gen)), gt)
                 best_px, best_cm = torch.minimum(best_px, p2), torch.minimum(best_cm, c2)
-            per_task = {}
-            for t in sorted(set(tasks)):
-                idx = [i for i, tt in enumerate(tasks) if tt == t]
-                per_task[t] = {"px": float(px[idx].mean()), "cm": float(cm[idx].mean()), "n": len(idx)}
-            mm = [i for i, t in enumerate(tasks) if t in multimodal_tasks()]
+            per_task = {t: {"px": float(px[idx].mean()), "cm": float(cm[idx].mean()), "n": len(idx)}
+                        for t, idx in by_task.items()}
             rows[f"{method}/{steps}"] = {
                 "model": cfg.model, "method": method, "steps": steps,
                 "evaluations": policy.objective.evaluations(steps, method),
@@ -162,8 +162,6 @@ def main(argv: list[str] | None = None) -> int:
                                          args.repeats, args.seed)
         best = min(results[d.name].values(), key=lambda r: r["px"])
         print(f"{d.name}: best {best['px']:.2f} px / {best['cm']:.2f} cm ({best['method']}, {best['steps']} steps)")
-    for path in (args.metrics, args.plots, args.table):
-        path.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.metrics, {"n_test": len(split["test"]), "best_of": args.best_of, "models": results})
     write_steps_csv(args.plots, results, args.steps)
     title = "# Trajectory error and inference time on the test split\n\n"

@@ -110,7 +110,6 @@ def main(argv: list[str] | None = None) -> int:
     gen = torch.Generator().manual_seed(args.seed)
     k = 1 if policy.kind == "mse" else max(1, args.samples)
     samples = torch.stack([norm.unnormalize(policy.predict(obs, args.steps, None, gen)) for _ in range(k)], dim=1)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
     write_recording(args.output, eps, list(samples.numpy()), policy.cfg.model)
     print(f"{args.output}: {len(eps)} episode(s), {k} sample(s) each from {args.model}")
     return 0

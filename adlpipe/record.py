@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -78,10 +79,7 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
                 events.append((tn, 8, topics.joints, M.JOINT_STATE,
                                lambda tn=tn, qp=qp, qv=qv: f.joint_state(tn, st.joint_names, qp, qv)))
         events.sort(key=lambda e: (e[0], e[1]))
-        counts: dict[str, int] = {}
-        for e in events:
-            counts[e[2]] = counts.get(e[2], 0) + 1
-        w.declare_counts(counts)
+        w.declare_counts(Counter(topic for _, _, topic, _, _ in events))
         for tn, _, topic, msgtype, build in events:
             w.write(topic, msgtype, tn, build())
         return w.close()

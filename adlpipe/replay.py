@@ -136,8 +136,6 @@ def main(argv: list[str] | None = None) -> int:
         every = [o for v in per.values() for o in v]
         result[label] = {"overall": float(np.mean(every)), "n": len(every),
                          "per_task": {t: float(np.mean(v)) for t, v in sorted(per.items())}}
-    args.metrics.parent.mkdir(parents=True, exist_ok=True)
-    args.table.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.metrics, {"episodes": len(eps), "success": result})
     tasks = sorted({ep.task for ep in eps})
     lines = ["| policy | overall | " + " | ".join(tasks) + " |", "| --- | ---: |" + " ---: |" * len(tasks)]

@@ -60,13 +60,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-o", "--output", type=Path, default=Path("reports/report.md"))
     args = p.parse_args(argv)
     ev, rp = _load(args.eval), _load(args.replay)
+    compared = comparisons(ev)
     parts = ["# adlpipe report", "", f"Test episodes: {ev['n_test']} (error), {rp['episodes']} (replay).", "",
-             "## Comparisons", "", *comparisons(ev), ""]
+             "## Comparisons", "", *compared, ""]
     for t in (args.table1, args.table2):
         if t.exists():
             parts += [t.read_text().replace("# ", "## ", 1), ""]
     write_text_atomic(args.output, "\n".join(parts))
-    print("\n".join(comparisons(ev)))
+    print("\n".join(compared))
     return 0
 
 

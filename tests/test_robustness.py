@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import signal
@@ -26,6 +25,7 @@ from adlpipe import schema
 from adlpipe.atomic import atomic_path, write_json_atomic
 from adlpipe.errors import AdlError
 from adlpipe.images import decode_compressed, decode_raw
+from adlpipe.ingest import sha256_of
 
 
 @pytest.fixture(scope="module")
@@ -74,10 +74,6 @@ def test_recover_keeps_the_complete_chunks_and_counts_the_loss(mcap_bags: list[P
     assert np.abs(ref_at - ep.traj3d).max() < 1e-5
 
 
-def _sha(p: Path) -> str:
-    return hashlib.sha256(p.read_bytes()).hexdigest()
-
-
 def test_sigkill_during_ingest_leaves_old_or_new_file(tmp_path: Path) -> None:
     bags = tmp_path / "bags"
     run_module("record", "--episodes", "2", "--tasks", "put on the hat", "comb the hair", "wipe the nose",
@@ -85,7 +81,7 @@ def test_sigkill_during_ingest_leaves_old_or_new_file(tmp_path: Path) -> None:
     all_bags = sorted(bags.glob("*.mcap"))
     out = tmp_path / "adl.h5"
     run_module("ingest", all_bags[0], "-o", out, "--size", "64", check=True)
-    old = _sha(out)
+    old = sha256_of(out)
     outcomes = set()
     for delay in (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0):
         proc = subprocess.Popen([sys.executable, "-m", "adlpipe.ingest", *map(str, all_bags), "-o", str(out),
@@ -96,7 +92,7 @@ def test_sigkill_during_ingest_leaves_old_or_new_file(tmp_path: Path) -> None:
         proc.wait()
         with h5py.File(out) as f:  # always a complete file
             n = len(schema.episode_names(f))
-        if _sha(out) == old:
+        if sha256_of(out) == old:
             outcomes.add("old")
         else:
             assert n == len(all_bags)

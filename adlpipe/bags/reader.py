@@ -198,6 +198,8 @@ class BagSource:
     @property
     def damaged(self) -> bool:
         """An MCAP whose summary cannot be read (truncated or corrupt tail)."""
+        if self.kind != "mcap":
+            return False
         if self._damaged is None:
             from mcap.reader import make_reader
 
@@ -206,7 +208,7 @@ class BagSource:
                     self._damaged = make_reader(f).get_summary() is None
             except Exception:  # noqa: BLE001
                 self._damaged = True
-        return self.kind == "mcap" and self._damaged
+        return self._damaged
 
     def _stream_records(self, include_metadata: bool = False) -> Iterator[tuple]:
         """Complete records of a damaged MCAP, read front to back; stops at the first broken one."""

@@ -12,6 +12,7 @@ from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Ros2Writer
 
+from ..atomic import temp_name
 from .messages import MessageFactory
 
 FORMATS = {"mcap": ".mcap", "bag": ".bag", "db3": ""}  # db3: a rosbag2 folder holding <name>.db3 + metadata.yaml
@@ -25,7 +26,7 @@ class BagWriter:
             raise ValueError(f"unknown bag format {fmt!r}; use one of {sorted(FORMATS)}")
         self.path, self.fmt = Path(path), fmt
         self.msgs = MessageFactory(1 if fmt == "bag" else 2)
-        self.tmp = self.path.with_name(f".{self.path.name}.tmp{os.getpid()}")
+        self.tmp = temp_name(self.path)
         self._remove(self.tmp)
         self._channels: dict[str, object] = {}
         if fmt == "mcap":

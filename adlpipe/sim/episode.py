@@ -176,9 +176,9 @@ def sample_balanced_scene(task_name: str, rng: np.random.Generator, max_attempts
     longer be ambiguous. Accepting scenes where all modes work keeps P(mode | scene) = 1/2.
     """
     task = TASKS[task_name]
+    modes = (-1.0, 1.0) if task.multimodal else (1.0,)
     spec = task.sample(rng)
     for _ in range(max_attempts):
-        modes = (-1.0, 1.0) if task.multimodal else (1.0,)
         if all(demo_succeeds(replace(spec, extras={**spec.extras, "mode": m})) for m in modes):
             break
         spec = task.sample(rng)
