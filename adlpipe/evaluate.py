@@ -24,8 +24,8 @@ from . import schema
 from .atomic import atomic_path, write_json_atomic, write_text_atomic
 from .data import Normalizer, TrajectoryDataset
 from .errors import AdlError, run_cli
+from .policy.checkpoint import load_policy
 from .split import load_split
-from .train import load_policy
 
 STEPS = [1, 2, 4, 8, 16]
 

@@ -25,8 +25,8 @@ from . import schema
 from .atomic import atomic_path
 from .data import Normalizer, observation
 from .errors import AdlError, run_cli
+from .policy.checkpoint import load_policy
 from .split import load_split
-from .train import load_policy
 
 GT_COLOR = [40, 200, 40]
 PRED_COLOR = [230, 60, 40]

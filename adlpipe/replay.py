@@ -26,8 +26,8 @@ from . import schema
 from .atomic import write_json_atomic, write_text_atomic
 from .data import Normalizer, observation, observation_from_arrays
 from .errors import AdlError, run_cli
+from .policy.checkpoint import load_policy
 from .split import load_split
-from .train import load_policy
 
 DEFAULT_STEPS = {"fm": 1, "ddpm": 16, "mse": 1}
 

@@ -1,12 +1,17 @@
-"""Train one of the four policies with the one training loop.
+"""Train one of the policies with the one training loop.
 
     python -m adlpipe.train --model fm_cnn --data data/adl.h5 --split data/split.json --out models/fm_cnn
 
-AdamW (lr 1e-4, weight decay 1e-6), cosine schedule with linear warm-up, EMA weights (used for the test loss and
-saved for inference). Train and test loss are logged per epoch to a CSV that `dvc plots` reads. A checkpoint is
-written atomically after every epoch; re-running the same command resumes from it (after a kill, too), and each
-epoch's randomness comes from (seed, epoch), so a resumed run ends where an uninterrupted one does.
-Checkpoints hold only tensors and plain values: they load with torch.load(weights_only=True).
+AdamW (weight decay 1e-6), cosine schedule with linear warm-up, EMA weights (used for the losses, validation and
+inference). A validation part of the train split (--val-fraction, stratified per task, seeded) is held out; every
+--val-every epochs the EMA policy's val px (mean per-waypoint pixel error with the model's default sampler: FM 1
+Euler step, DP 16 DDPM steps, BC direct) is measured, and the best EMA weights are kept in best.pt beside the last
+ones in model.pt. A model whose best val px still fell by more than 2 % over the last fifth of training is marked
+"converged": false in metrics.json. Every model trains for the same number of optimiser steps (epochs x batches).
+Train, test and val figures are logged per epoch to a CSV that `dvc plots` reads. A checkpoint is written atomically
+after every epoch; re-running the same command resumes from it (after a kill, too), and each epoch's randomness
+comes from (seed, epoch), so a resumed run ends where an uninterrupted one does. Checkpoints hold only tensors and
+plain values: they load with torch.load(weights_only=True).
 """
 
 from __future__ import annotations
@@ -19,17 +24,21 @@ import sys
 import time
 from pathlib import Path
 
+import h5py
 import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from . import schema
 from .atomic import atomic_path, write_json_atomic
-from .data import TrajectoryDataset, compute_stats
+from .data import Normalizer, TrajectoryDataset, compute_stats
 from .errors import AdlError, run_cli
-from .models import MODELS, PRESET_LR, PRESETS, ModelConfig, Policy, preset
-from .split import load_split
+from .policy.checkpoint import load_checkpoint, save_atomic
+from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, Policy, preset
+from .split import load_split, make_split
 
-LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "lr", "seconds"]
+LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "val_px", "lr", "seconds"]
+CONVERGENCE_TOLERANCE = 0.02  # best val px may fall by at most 2 % over the last fifth of training
 
 
 def cosine_with_warmup(opt: torch.optim.Optimizer, warmup: int, total: int) -> torch.optim.lr_scheduler.LambdaLR:
@@ -61,28 +70,6 @@ class EMA:
             e.copy_(b)
 
 
-def save_atomic(obj: dict, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
-
-
-def load_checkpoint(path: Path) -> dict:
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)  # never unpickle code from a user file
-    except Exception as exc:  # noqa: BLE001 - a corrupt or foreign file
-        raise AdlError(f"{path}: not a loadable adlpipe checkpoint ({type(exc).__name__}: {exc})") from exc
-
-
-def load_policy(path: Path) -> tuple[Policy, dict]:
-    """The EMA policy saved by training (model.pt), ready for inference, and its checkpoint metadata."""
-    ck = load_checkpoint(path)
-    if "config" not in ck or "ema" not in ck:
-        raise AdlError(f"{path}: not an adlpipe policy checkpoint (no config/ema)")
-    policy = Policy(ModelConfig.from_dict(ck["config"]))
-    policy.load_state_dict(ck["ema"])
-    return policy.eval(), ck
-
-
 @torch.no_grad()
 def evaluate_loss(policy: Policy, loader: DataLoader, seed: int) -> float:
     gen = torch.Generator().manual_seed(seed)  # the same noise every epoch: comparable test losses
@@ -93,20 +80,58 @@ def evaluate_loss(policy: Policy, loader: DataLoader, seed: int) -> float:
     return total / max(n, 1)
 
 
+@torch.no_grad()
+def validation_px(policy: Policy, obs: torch.Tensor, target_px: torch.Tensor, norm: Normalizer, seed: int) -> float:
+    """Mean per-waypoint pixel error of the default sampler on the validation episodes (same noise every time)."""
+    gen = torch.Generator().manual_seed(seed)
+    pred = norm.unnormalize(policy.predict(obs, policy.default_steps, None, gen))
+    return float((pred[..., :2] - target_px).norm(dim=-1).mean())
+
+
+def converged(history: list[dict], tolerance: float = CONVERGENCE_TOLERANCE) -> bool:
+    """False if the best val px over the whole run is more than `tolerance` below the best of its first 4/5."""
+    vals = [(r["epoch"], r["val_px"]) for r in history if r.get("val_px") is not None]
+    if len(vals) < 2:
+        return False
+    cut = 0.8 * history[-1]["epoch"]
+    early = [v for e, v in vals if e <= cut]
+    return bool(early) and min(v for _, v in vals) >= (1 - tolerance) * min(early)
+
+
+def split_validation(data: Path, train_names: list[str], fraction: float, seed: int) -> tuple[list[str], list[str]]:
+    """(train, val): a stratified, seeded part of the train split held out for checkpoint selection."""
+    if fraction <= 0:
+        return list(train_names), []
+    with h5py.File(data, "r") as f:
+        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in train_names}
+    parts = make_split(tasks, fraction, seed + 1)
+    return parts["train"], parts["test"]
+
+
 def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
           lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = 50, seed: int = 0,
-          log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None) -> dict:
+          log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
+          val_fraction: float = 0.1, val_every: int = 5) -> dict:
     """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests)."""
     out.mkdir(parents=True, exist_ok=True)
     split = load_split(split_path)
     if not split["train"]:
         raise AdlError(f"{split_path}: the train split is empty")
-    stats = compute_stats(str(data), split["train"])
-    train_ds = TrajectoryDataset(str(data), split["train"], stats, cfg.image_size, cfg.use_depth)
-    test_ds = TrajectoryDataset(str(data), split["test"] or split["train"], stats, cfg.image_size, cfg.use_depth)
+    train_names, val_names = split_validation(data, split["train"], val_fraction, seed)
+    stats = compute_stats(str(data), train_names)
+    train_ds = TrajectoryDataset(str(data), train_names, stats, cfg.image_size, cfg.use_depth)
+    test_ds = TrajectoryDataset(str(data), split["test"] or train_names, stats, cfg.image_size, cfg.use_depth)
+    norm = Normalizer(stats)
+    val_obs, val_px_target = None, None
+    if val_names:
+        val_ds = TrajectoryDataset(str(data), val_names, stats, cfg.image_size, cfg.use_depth, cache=False)
+        items = [val_ds[i] for i in range(len(val_ds))]
+        val_obs = torch.stack([o for o, _ in items])
+        val_px_target = norm.unnormalize(torch.stack([a for _, a in items]))[..., :2]
     steps_per_epoch = math.ceil(len(train_ds) / batch_size)
     hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
-               "warmup_steps": warmup_steps, "seed": seed, "data": str(data), "split": sorted(split["train"])}
+               "warmup_steps": warmup_steps, "seed": seed, "data": str(data), "split": sorted(split["train"]),
+               "val_fraction": val_fraction, "val_every": val_every}
 
     torch.manual_seed(seed)
     policy = Policy(cfg)
@@ -126,6 +151,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         opt.load_state_dict(ck["optimizer"])
         sched.load_state_dict(ck["scheduler"])
         history, start_epoch = list(ck["history"]), int(ck["epoch"])
+    best_px = min((r["val_px"] for r in history if r.get("val_px") is not None), default=math.inf)
 
     test_loader = DataLoader(test_ds, batch_size=batch_size, shuffle=False)
     bar = tqdm(range(start_epoch, epochs), initial=start_epoch, total=epochs, desc=f"train {cfg.model}",
@@ -146,11 +172,18 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             ema.update(policy)
             total += loss.item() * len(obs)
             n += len(obs)
+        val_px = None
+        if val_obs is not None and ((epoch + 1) % val_every == 0 or epoch + 1 == epochs):
+            val_px = validation_px(ema.model, val_obs, val_px_target, norm, seed)
         row = {"epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "train_loss": total / n,
-               "test_loss": evaluate_loss(ema.model, test_loader, seed), "lr": sched.get_last_lr()[0],
-               "seconds": time.time() - t0}
+               "test_loss": evaluate_loss(ema.model, test_loader, seed), "val_px": val_px,
+               "lr": sched.get_last_lr()[0], "seconds": time.time() - t0}
         history.append(row)
         bar.set_postfix(train=f"{row['train_loss']:.4f}", test=f"{row['test_loss']:.4f}")
+        if val_px is not None and val_px < best_px:  # written before last.pt: a resumed run never lacks it
+            best_px = val_px
+            save_atomic({"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats,
+                         "history": history, "hparams": hparams, "epoch": epoch + 1}, out / "best.pt")
         save_atomic({"model": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
                      "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1,
                      "history": history, "config": cfg.to_dict(), "hparams": hparams, "stats": stats}, last)
@@ -158,14 +191,23 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             return {"interrupted_at": epoch + 1}
 
     save_atomic({"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats, "history": history,
-                 "hparams": hparams}, out / "model.pt")
+                 "hparams": hparams, "epoch": epochs}, out / "model.pt")
+    if not (out / "best.pt").exists():  # no validation part: the last weights are the only choice
+        save_atomic({"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats, "history": history,
+                     "hparams": hparams, "epoch": epochs}, out / "best.pt")
     if log_csv is not None:
         with atomic_path(log_csv) as tmp, open(tmp, "w", newline="") as f:
             w = csv.DictWriter(f, LOG_FIELDS)
             w.writeheader()
             w.writerows(history)
-    final = {"model": cfg.model, "epochs": epochs, "train_loss": history[-1]["train_loss"],
-             "test_loss": history[-1]["test_loss"], "seconds": sum(r["seconds"] for r in history)}
+    vals = [r for r in history if r.get("val_px") is not None]
+    best = min(vals, key=lambda r: r["val_px"]) if vals else None
+    final = {"model": cfg.model, "epochs": epochs, "optimizer_steps": epochs * steps_per_epoch,
+             "train_episodes": len(train_names), "val_episodes": len(val_names),
+             "train_loss": history[-1]["train_loss"], "test_loss": history[-1]["test_loss"],
+             "val_px_last": vals[-1]["val_px"] if vals else None, "val_px_best": best["val_px"] if best else None,
+             "best_epoch": best["epoch"] if best else epochs, "converged": converged(history),
+             "seconds": sum(r["seconds"] for r in history)}
     write_json_atomic(out / "metrics.json", final)
     return final
 
@@ -189,10 +231,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument("--log", type=Path, help="per-epoch CSV for dvc plots (default: <out>/log.csv)")
+    p.add_argument("--val-fraction", type=float, default=0.1,
+                   help="part of the train split held out for validation and checkpoint selection (0: none)")
+    p.add_argument("--val-every", type=int, default=5, help="measure val px every N epochs (and at the last)")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and train from scratch")
     args = p.parse_args(argv)
-    if args.epochs < 1 or args.batch_size < 1:
-        raise AdlError("--epochs and --batch-size must be >= 1")
+    if args.epochs < 1 or args.batch_size < 1 or args.val_every < 1:
+        raise AdlError("--epochs, --batch-size and --val-every must be >= 1")
+    if not 0 <= args.val_fraction < 1:
+        raise AdlError("--val-fraction must be in [0, 1)")
     if args.threads:
         torch.set_num_threads(args.threads)
     overrides = {"use_depth": args.depth}
@@ -200,16 +247,20 @@ def main(argv: list[str] | None = None) -> int:
         overrides["image_size"] = args.image_size
     cfg = preset(args.config, args.model, **overrides)
     out = args.out or Path("models") / args.model
-    if args.restart and (out / "last.pt").exists():
-        (out / "last.pt").unlink()
+    if args.restart:
+        for name in ("last.pt", "best.pt"):
+            (out / name).unlink(missing_ok=True)
     if not args.data.exists():
         raise AdlError(f"{args.data}: no such dataset; run python -m adlpipe.ingest first")
     split = args.split or args.data.with_name("split.json")
     lr = args.lr if args.lr is not None else PRESET_LR[args.config]
     m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay, args.warmup_steps,
-              args.seed, args.log or out / "log.csv", progress=True)
-    print(f"{out}: {cfg.model} trained {m['epochs']} epochs in {m['seconds']:.0f} s, "
-          f"train loss {m['train_loss']:.4f}, test loss {m['test_loss']:.4f}")
+              args.seed, args.log or out / "log.csv", progress=True, val_fraction=args.val_fraction,
+              val_every=args.val_every)
+    val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"
+           f"{'' if m['converged'] else ', NOT CONVERGED'}" if m["val_px_best"] is not None else "")
+    print(f"{out}: {cfg.model} trained {m['epochs']} epochs ({m['optimizer_steps']} steps) in {m['seconds']:.0f} s, "
+          f"train loss {m['train_loss']:.4f}, test loss {m['test_loss']:.4f}{val}")
     return 0
 
 

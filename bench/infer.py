@@ -15,8 +15,8 @@ from pathlib import Path
 import torch
 
 from adlpipe.evaluate import latency_ms
-from adlpipe.models import Policy, preset
-from adlpipe.train import load_policy
+from adlpipe.policy.checkpoint import load_policy
+from adlpipe.policy.models import Policy, preset
 
 STEPS = [1, 2, 4, 8, 16]
 

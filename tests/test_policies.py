@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from adlpipe.errors import AdlError
-from adlpipe.models import MODELS, ModelConfig, Policy
-from adlpipe.objectives import DDPM, FlowMatching, squaredcos_cap_v2
+from adlpipe.policy.checkpoint import load_checkpoint, load_policy
+from adlpipe.policy.models import MODELS, ModelConfig, Policy
+from adlpipe.policy.objectives import DDPM, FlowMatching, interpolate, squaredcos_cap_v2, velocity_from_x1
 from adlpipe.split import make_split
-from adlpipe.train import load_checkpoint, load_policy, train
+from adlpipe.train import train
 
 TINY = dict(image_size=32, encoder_width=8, obs_dim=16, down_dims=(16, 32, 64), d_model=32, n_layers=1, n_heads=2)
 
@@ -73,7 +74,8 @@ class GaussianFlow(torch.nn.Module):
 def test_flow_samplers_integrate_the_flow_with_the_stated_step_count(method: str, per_step: int, steps: int) -> None:
     net = GaussianFlow(0.3, 0.5)
     x0 = torch.randn((64, 32, 5), generator=torch.Generator().manual_seed(0))
-    x = FlowMatching().sample(net, torch.zeros(64, 1), (64, 32, 5), steps, method, torch.Generator().manual_seed(0))
+    x = FlowMatching("velocity").sample(net, torch.zeros(64, 1), (64, 32, 5), steps, method,
+                                        torch.Generator().manual_seed(0))
     assert net.calls == steps * per_step == FlowMatching.evaluations(steps, method)
     err = float((x - (0.3 + 0.5 * x0)).abs().mean())
     order = {"euler": 1, "midpoint": 2, "rk4": 4}[method]
@@ -84,7 +86,8 @@ def test_flow_samplers_integrate_the_flow_with_the_stated_step_count(method: str
 def test_one_euler_step_of_a_straight_flow_is_exact() -> None:
     """A point target makes every path straight: one Euler step lands on it (why FM works with few steps)."""
     net = GaussianFlow(-0.2, 0.0)
-    x = FlowMatching().sample(net, torch.zeros(2, 1), (2, 32, 5), 1, "euler", torch.Generator().manual_seed(0))
+    x = FlowMatching("velocity").sample(net, torch.zeros(2, 1), (2, 32, 5), 1, "euler",
+                                        torch.Generator().manual_seed(0))
     assert torch.allclose(x, torch.full_like(x, -0.2), atol=1e-6)
 
 
@@ -110,8 +113,8 @@ def test_one_euler_step_returns_the_mean_of_the_modes_like_mse_regression() -> N
     g = torch.Generator().manual_seed(0)
     m = 0.5 * torch.sign(torch.randn((32, 5), generator=g))
     net, n = TwoModeFlow(m), 4096
-    one = FlowMatching().sample(net, torch.zeros(n, 1), (n, 32, 5), 1, "euler", g)
-    many = FlowMatching().sample(net, torch.zeros(n, 1), (n, 32, 5), 16, "euler", g)
+    one = FlowMatching("velocity").sample(net, torch.zeros(n, 1), (n, 32, 5), 1, "euler", g)
+    many = FlowMatching("velocity").sample(net, torch.zeros(n, 1), (n, 32, 5), 16, "euler", g)
     assert float(one.abs().max()) < 1e-6  # the average of +m and -m
     to_mode = torch.stack([(many - m).norm(dim=2).mean(1), (many + m).norm(dim=2).mean(1)], 1)
     assert float(to_mode.min(1).values.max()) < 0.05 * float(m.norm(dim=1).mean())  # every sample is near a mode
@@ -126,7 +129,7 @@ def test_one_euler_step_returns_the_mean_of_the_modes_like_mse_regression() -> N
 @pytest.mark.parametrize("method", ["ddpm", "ddim"])
 @pytest.mark.parametrize("steps", [1, 2, 4, 8, 16])
 def test_diffusion_samplers_with_an_exact_noise_model(method: str, steps: int) -> None:
-    d = DDPM()
+    d = DDPM(spacing="trailing")
     c = torch.full((2, 32, 5), -0.4)
     net = ExactNoise(c, d.abar)
     x = d.sample(net, torch.zeros(2, 1), (2, 32, 5), steps, method, torch.Generator().manual_seed(0))
@@ -137,16 +140,59 @@ def test_diffusion_samplers_with_an_exact_noise_model(method: str, steps: int) -
 def test_ddpm_schedule_and_timesteps() -> None:
     betas = squaredcos_cap_v2(100)
     assert betas.shape == (100,) and float(betas.max()) <= 0.999 and bool((betas[1:] >= betas[:-1]).all())
-    d = DDPM()
+    d = DDPM(spacing="trailing")
     assert d.timesteps(1) == [99]
     ts = d.timesteps(16)
     assert len(ts) == 16 and ts[0] == 99 and ts == sorted(set(ts), reverse=True)
+    leading = DDPM(spacing="leading")  # diffusers' default, as Diffusion Policy samples
+    assert leading.timesteps(16) == list(range(90, -1, -6)) and leading.timesteps(1) == [0]
+
+
+class ExactX1(torch.nn.Module):
+    """The exact clean-trajectory predictor E[x1 | x_t] of the two-mode flow (what an x-prediction net learns)."""
+
+    def __init__(self, flow: TwoModeFlow) -> None:
+        super().__init__()
+        self.flow = flow
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        tt = (t / FlowMatching.TIME_SCALE)[:, None, None]
+        return x + (1 - tt) * self.flow(x, t, cond)
+
+
+@pytest.mark.parametrize("steps", [1, 4, 16])
+def test_x_prediction_integrates_the_same_flow_as_the_velocity_target(steps: int) -> None:
+    """v = (x1_hat - x_t) / (1 - t): with the exact x1 predictor the samples equal the exact-velocity ones."""
+    g = torch.Generator().manual_seed(0)
+    flow = TwoModeFlow(0.5 * torch.sign(torch.randn((32, 5), generator=g)))
+    a = FlowMatching("velocity").sample(flow, torch.zeros(8, 1), (8, 32, 5), steps, "euler",
+                                        torch.Generator().manual_seed(1))
+    b = FlowMatching("x1").sample(ExactX1(flow), torch.zeros(8, 1), (8, 32, 5), steps, "euler",
+                                  torch.Generator().manual_seed(1))
+    assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_one_euler_step_of_x_prediction_is_the_network_output() -> None:
+    """The point of x-prediction: one step returns x1_hat itself, whatever the starting noise."""
+    target = torch.linspace(-1, 1, 32 * 5).reshape(1, 32, 5)
+    net = lambda x, t, c: target.expand_as(x)  # noqa: E731
+    x = FlowMatching("x1").sample(net, torch.zeros(3, 1), (3, 32, 5), 1, "euler", torch.Generator().manual_seed(0))
+    assert torch.allclose(x, target.expand(3, -1, -1), atol=1e-6)
+
+
+def test_flow_matching_primitives() -> None:
+    x0, x1 = torch.randn(4, 32, 5), torch.randn(4, 32, 5)
+    t = torch.tensor([0.0, 0.25, 0.5, 0.9])
+    xt = interpolate(x0, x1, t)
+    assert torch.allclose(xt[0], x0[0]) and torch.allclose(xt[2], 0.5 * (x0[2] + x1[2]))
+    assert torch.allclose(velocity_from_x1(x1, xt, t), x1 - x0, atol=1e-5)  # the exact x1 gives v = x1 - x0
 
 
 def test_flow_matching_starts_from_gaussian_noise_at_test_time() -> None:
     """The authors' scripts started test-time sampling from uniform noise; ours must be N(0, 1)."""
     zero = lambda x, t, c: torch.zeros_like(x)  # noqa: E731 - x stays x0
-    x = FlowMatching().sample(zero, torch.zeros(1, 1), (1, 4096, 5), 1, "euler", torch.Generator().manual_seed(1))
+    x = FlowMatching("velocity").sample(zero, torch.zeros(1, 1), (1, 4096, 5), 1, "euler",
+                                        torch.Generator().manual_seed(1))
     assert float(x.min()) < -2.5 and abs(float(x.mean())) < 0.05 and abs(float(x.std()) - 1) < 0.05
 
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from .world import ARM_JOINTS, GRASPABLE, HOME_Q, HOME_TCP
 
-GRASP_RADIUS = 0.035  # tcp within this distance of an object's grasp site closes the gripper on it
+GRASP_RADIUS = 0.01  # the fingers close on an object only with the tcp within 1 cm of its grasp site
 TARGET_ROT = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # hand z down, x along world x
 
 
@@ -28,9 +28,12 @@ class ArmController:
         self.released: set[str] = set()
         self._jacp = np.zeros((3, model.nv))
         self._jacr = np.zeros((3, model.nv))
-        self._grasp_sites = {
-            model.site(i).name: i for i in range(model.nsite) if model.site(i).name.endswith("_grasp")
-        }
+        # Grasp sites are named <object>_grasp, or <object>_grasp_<side> where an object has several.
+        self._grasp_sites: dict[str, list[int]] = {}
+        for i in range(model.nsite):
+            obj, sep, _side = model.site(i).name.partition("_grasp")
+            if sep:
+                self._grasp_sites.setdefault(obj, []).append(i)
         self._prev_dist: dict[str, float] = {}
 
     def reset_home(self, tcp_target: np.ndarray = HOME_TCP) -> None:
@@ -105,9 +108,9 @@ class ArmController:
         if self.held is not None:
             return
         for obj in GRASPABLE:
-            if obj in self.released or f"{obj}_grasp" not in self._grasp_sites:
+            if obj in self.released or obj not in self._grasp_sites:
                 continue
-            dist = float(np.linalg.norm(self.d.site_xpos[self._grasp_sites[f"{obj}_grasp"]] - self.tcp_pos))
+            dist = min(float(np.linalg.norm(self.d.site_xpos[i] - self.tcp_pos)) for i in self._grasp_sites[obj])
             prev = self._prev_dist.get(obj, np.inf)
             self._prev_dist[obj] = dist
             if dist < GRASP_RADIUS and dist >= prev - 1e-5:

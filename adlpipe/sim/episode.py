@@ -150,12 +150,24 @@ def affordance_map(points_uv: np.ndarray, width: int, height: int, sigma: float)
     return out
 
 
+def in_mode(spec: SceneSpec, mode: float) -> SceneSpec:
+    return replace(spec, extras={**spec.extras, "mode": float(mode)})
+
+
 def touched_points(task: Task, scene: Scene) -> np.ndarray:
-    """The 3D points the action touches: where it grasps/contacts and where it puts things or acts."""
-    if task.touches:  # tool tasks: the parts of the manikin (or bowl) the tool tip touches
-        return np.array([t(scene) for t, _ in task.touches])
-    # object tasks: where the gripper/broom meets the object and where the object is put (the dwell keypoints)
-    return np.array([p for p, dwell in task.plan(scene) if dwell > 0])
+    """The 3D points the action may touch, over every mode of the task (the affordance map must not tell the mode):
+    for tool tasks the parts of the manikin (or bowl) the tool works on; for object tasks where the gripper or broom
+    meets the object and where the object is put (the dwell keypoints of the plan)."""
+    pts: list[np.ndarray] = [fn(scene) for fn, _ in task.touches]
+    if task.stroke:
+        pts += [task.stroke.a(scene), task.stroke.b(scene)]
+    if task.dwell:
+        pts.append(task.dwell.point(scene))
+    if not pts:
+        for mode in task.modes:
+            plan = task.plan(Scene(scene.m, scene.d, in_mode(scene.spec, mode)))
+            pts += [p for p, dwell in plan if dwell > 0]
+    return np.unique(np.round(np.array(pts), 6), axis=0)
 
 
 def demo_succeeds(spec: SceneSpec) -> bool:
@@ -176,13 +188,12 @@ def sample_balanced_scene(task_name: str, rng: np.random.Generator, max_attempts
     longer be ambiguous. Accepting scenes where all modes work keeps P(mode | scene) = 1/2.
     """
     task = TASKS[task_name]
-    modes = (-1.0, 1.0) if task.multimodal else (1.0,)
     spec = task.sample(rng)
     for _ in range(max_attempts):
-        if all(demo_succeeds(replace(spec, extras={**spec.extras, "mode": m})) for m in modes):
+        if all(demo_succeeds(in_mode(spec, m)) for m in task.modes):
             break
         spec = task.sample(rng)
-    return replace(spec, extras={**spec.extras, "mode": float(rng.choice([-1.0, 1.0])) if task.multimodal else 1.0})
+    return in_mode(spec, float(rng.choice(task.modes)))
 
 
 def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, height: int = 224,

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from .world import DUSTPAN_HALF, TOOL_LENGTH, SceneSpec
+from .world import DUSTPAN_HALF, SceneSpec, tool_tip_offset
 
 TASK_NAMES = [
     "sweep the trash", "pass the water", "hang the towel", "put on the hat", "cover the food",
@@ -43,6 +43,33 @@ class Scene:
 
 Point = Callable[[Scene], np.ndarray]
 
+# What success means (stated in README): a contact force on the manikin above FORCE_LIMIT_N at any time fails the
+# episode; a grasp needs the tcp within GRASP_RADIUS of the grasp site (controller.py).
+FORCE_LIMIT_N = 20.0
+# The demonstrator aims 8 mm below a grasp site: the fingers close round the object, and the tcp passes through the
+# site instead of creeping up on it (the grasp fires at the closest approach within GRASP_RADIUS).
+GRASP_DEPTH = np.array([0.0, 0.0, -0.008])
+
+
+@dataclass(frozen=True)
+class Stroke:
+    """Tool contact with the manikin, within `radius` of the segment a-b on its surface, while the tool tip travels
+    at least `length` metres (wiping, combing, brushing)."""
+
+    a: Point
+    b: Point
+    radius: float
+    length: float
+
+
+@dataclass(frozen=True)
+class Dwell:
+    """The tool tip within `radius` of a point for `seconds` without a break (the spoon at the mouth)."""
+
+    point: Point
+    radius: float
+    seconds: float
+
 
 @dataclass
 class Task:
@@ -52,7 +79,13 @@ class Task:
     sample_objects: Callable[[np.random.Generator], dict[str, tuple[float, float, float, float]]]
     plan: Callable[[Scene], list[tuple[np.ndarray, float]]]  # (tool-tip or tcp target, dwell seconds)
     touches: list[tuple[Point, float]] = field(default_factory=list)  # reached in order by the tool tip
+    stroke: Stroke | None = None  # tool contact along a stroke on the manikin
+    dwell: Dwell | None = None  # the tool tip held at a point (after the touches)
     placed: Callable[[Scene], bool] | None = None  # final predicate on the objects
+
+    @property
+    def modes(self) -> tuple[float, ...]:
+        return (-1.0, 1.0) if self.multimodal else (1.0,)
 
     @property
     def slug(self) -> str:
@@ -66,8 +99,8 @@ class Task:
         return SceneSpec(task=self.name, poses=poses, tool=self.tool, extras={"mode": float(mode)})
 
     def tcp_keypoints(self, scene: Scene) -> list[tuple[np.ndarray, float]]:
-        """The planned keypoints as tcp targets (a held tool's tip is TOOL_LENGTH below the tcp)."""
-        offset = np.array([0.0, 0.0, TOOL_LENGTH if self.tool else 0.0])
+        """The planned keypoints as tcp targets (the plan gives tool-tip targets for a held tool)."""
+        offset = -tool_tip_offset(self.tool)
         return [(np.asarray(p, float) + offset, dwell) for p, dwell in self.plan(scene)]
 
 
@@ -89,7 +122,7 @@ def _v(*xyz: float) -> np.ndarray:
 
 # --- object tasks -------------------------------------------------------------------------------------------
 def _sweep_objects(rng: np.random.Generator) -> dict:
-    tx, ty = _u(rng, -0.10, 0.10), _u(rng, 0.26, 0.34)
+    tx, ty = _u(rng, -0.10, 0.10), _u(rng, 0.20, 0.26)  # the broom going round it stays clear of the hands
     return {"trash": _pose(tx, ty), "dustpan": _pose(tx + _u(rng, -0.03, 0.03), ty - _u(rng, 0.14, 0.18))}
 
 
@@ -126,7 +159,7 @@ def _pass_plan(s: Scene) -> list:
     return [
         (_v(g[0] + 0.10 * s.mode, g[1] - 0.03, 0.20), 0.0),  # approach from the left or the right side
         (g + _v(0, 0, 0.05), 0.0),
-        (g, 0.15),
+        (g + GRASP_DEPTH, 0.8),  # reach through the grasp site and settle (the 32 resampled waypoints keep it)
         (g + _v(0, 0, 0.10), 0.0),
         (tgt + _v(0, 0, 0.08), 0.0),
         (tgt + _v(0, 0, 0.005), 0.15),
@@ -140,13 +173,12 @@ def _towel_objects(rng: np.random.Generator) -> dict:
 
 def _towel_plan(s: Scene) -> list:
     c = s.body("towel")
-    side = _v(0.02 * s.mode, 0, 0)  # two grasp sides of the towel
-    g = s.site("towel_grasp") + side
+    g = s.site("towel_grasp_r" if s.mode > 0 else "towel_grasp_l")  # two grasp sides of the towel
     rack_top = s.body("rack") + _v(0, 0, 0.204)
     tgt = rack_top + (g - c) + _v(0, 0, 0.01)
     return [
         (g + _v(0, 0, 0.06), 0.0),
-        (g, 0.15),
+        (g + GRASP_DEPTH, 0.8),  # reach through the grasp site and settle (the 32 resampled waypoints keep it)
         (g + _v(0, 0, 0.26), 0.0),
         (tgt + _v(0, 0, 0.06), 0.0),
         (tgt, 0.15),
@@ -162,11 +194,11 @@ def _hat_plan(s: Scene) -> list:
     tgt = s.site("head_top") + (g - c)
     return [
         (g + _v(0, 0, 0.06), 0.0),
-        (g, 0.15),
+        (g + GRASP_DEPTH, 0.8),  # reach through the grasp site and settle (the 32 resampled waypoints keep it)
         (g + _v(0, 0, 0.20), 0.0),
         (tgt + _v(0.12 * s.mode, -0.10, 0.06), 0.0),  # come in over the left or the right shoulder
         (tgt + _v(0, 0, 0.04), 0.0),
-        (tgt + _v(0, 0, 0.012), 0.15),
+        (tgt + _v(0, 0, 0.02), 0.15),  # let go 2 cm above the hair: the hat settles on the head
     ]
 
 
@@ -182,7 +214,7 @@ def _cover_plan(s: Scene) -> list:
     tgt = p + (g - c) + _v(0, 0, 0.014)
     return [
         (g + _v(0, 0, 0.06), 0.0),
-        (g, 0.15),
+        (g + GRASP_DEPTH, 0.8),  # reach through the grasp site and settle (the 32 resampled waypoints keep it)
         (g + _v(0, 0, 0.10), 0.0),
         (_v(b[0], b[1] + 0.15 * s.mode, g[2] + 0.10), 0.0),  # pass the bottle on either side (it blocks the middle)
         (tgt + _v(0, 0, 0.06), 0.0),
@@ -196,21 +228,27 @@ def _no_objects(rng: np.random.Generator) -> dict:
 
 
 def _nose_plan(s: Scene) -> list:
-    n = s.site("nose")
+    # The sponge's front face is 2 cm ahead of its tip: press it 3 mm into the nose and wipe 2 cm each way.
+    n = s.site("nose") + _v(0, -0.017, 0)
     return [
-        (n + _v(0, -0.10, 0.02), 0.0),
-        (n + _v(0, -0.012, 0), 0.1),
-        (n + _v(0.02, -0.012, 0), 0.0),
-        (n + _v(-0.02, -0.012, 0), 0.0),
-        (n + _v(0, -0.10, 0.02), 0.0),
+        (n + _v(0, -0.08, 0.02), 0.0),
+        (n, 0.1),
+        (n + _v(0.02, 0, 0), 0.0),
+        (n + _v(-0.02, 0, 0), 0.0),
+        (n + _v(0, -0.08, 0.02), 0.0),
     ]
 
 
+FOREARM_PRESS = _v(0, 0, -0.001)  # the sponge's bottom face 1 mm into the skin
+
+
 def _forearm_plan(s: Scene) -> list:
-    a, b = s.site("forearm_start") + _v(0, 0, 0.02), s.site("forearm_end") + _v(0, 0, 0.02)
+    a, b = s.site("forearm_start") + FOREARM_PRESS, s.site("forearm_end") + FOREARM_PRESS
     if s.mode < 0:  # stroke in either direction
         a, b = b, a
-    return [(a + _v(0, 0, 0.07), 0.0), (a, 0.1), (b, 0.0), (a, 0.0), (b, 0.1), (b + _v(0, 0, 0.07), 0.0)]
+    # Come down slowly for the last centimetre: touching down fast on the skin is an impact.
+    return [(a + _v(0, 0, 0.07), 0.0), (a + _v(0, 0, 0.01), 0.0), (a, 0.1), (b, 0.0), (a, 0.0), (b, 0.1),
+            (b + _v(0, 0, 0.07), 0.0)]
 
 
 def _feed_objects(rng: np.random.Generator) -> dict:
@@ -229,25 +267,27 @@ def _feed_plan(s: Scene) -> list:
         (bw + _v(0.02, 0, 0.0), 0.0),
         (bw + _v(0, 0, 0.10), 0.0),
         (mo + _v(0.08 * s.mode, -0.10, 0.0), 0.0),  # bring the spoon up from the left or the right
-        (mo + _v(0, -0.01, 0), 0.2),
+        (mo + _v(0, -0.012, 0), 0.3),
         (mo + _v(0, -0.10, 0.02), 0.0),
     ]
 
 
 def _comb_plan(s: Scene) -> list:
-    f, b = s.site("hair_front") + _v(0, 0, 0.012), s.site("hair_back") + _v(0, 0, 0.012)
-    return [(f + _v(0, -0.06, 0.06), 0.0), (f, 0.05), (b, 0.0), (f + _v(0, 0, 0.03), 0.0), (f, 0.0), (b, 0.05),
+    # Front, over the top, to the back of the hair sphere, the comb's edge 2-3 mm into the hair.
+    f, m, b = s.site("hair_front"), s.site("hair_mid"), s.site("hair_back") + _v(0, 0, -0.004)
+    return [(f + _v(0, -0.06, 0.06), 0.0), (f + _v(0, -0.01, 0.01), 0.0), (f, 0.05), (m, 0.0), (b, 0.0),
+            (m + _v(0, 0, 0.03), 0.0), (f + _v(0, 0, 0.02), 0.0), (f, 0.0), (m, 0.0), (b, 0.05),
             (b + _v(0, 0, 0.06), 0.0)]
 
 
 def _teeth_plan(s: Scene) -> list:
-    mo = s.site("mouth")
+    mo = s.site("mouth") + _v(0, 0.004, 0)  # the brush head (radius 5 mm) 4 mm into the mouth
     return [
         (mo + _v(0, -0.10, 0.0), 0.0),
-        (mo + _v(0, -0.01, 0), 0.05),
-        (mo + _v(0.015, -0.01, 0), 0.0),
-        (mo + _v(-0.015, -0.01, 0), 0.0),
-        (mo + _v(0.015, -0.01, 0), 0.0),
+        (mo, 0.05),
+        (mo + _v(0.015, 0, 0), 0.0),
+        (mo + _v(-0.015, 0, 0), 0.0),
+        (mo + _v(0.015, 0, 0), 0.0),
         (mo + _v(0, -0.10, 0.0), 0.0),
     ]
 
@@ -270,42 +310,96 @@ TASKS: dict[str, Task] = {
              and s.body("hat")[2] > s.site("head_top")[2] - 0.06),
         Task("cover the food", None, True, _cover_objects, _cover_plan,
              placed=lambda s: _xy_dist(s.body("lid"), s.body("plate")) < 0.035 and s.body("lid")[2] < 0.05),
-        Task("wipe the nose", "sponge", False, _no_objects, _nose_plan, touches=[(_site("nose"), 0.025)]),
+        Task("wipe the nose", "sponge", False, _no_objects, _nose_plan,
+             stroke=Stroke(_site("nose"), _site("nose"), 0.03, 0.03)),
         Task("wipe the forearm", "sponge", True, _no_objects, _forearm_plan,
-             touches=[(_site("forearm_start", (0, 0, 0.02)), 0.03), (_site("forearm_end", (0, 0, 0.02)), 0.03)]),
-        Task("feed the human", "spoon", True, _feed_objects, _feed_plan,
-             touches=[(_bowl_point, 0.03), (_site("mouth"), 0.025)]),
+             stroke=Stroke(_site("forearm_start"), _site("forearm_end"), 0.03, 0.10)),
+        Task("feed the human", "spoon", True, _feed_objects, _feed_plan, touches=[(_bowl_point, 0.03)],
+             dwell=Dwell(_site("mouth"), 0.02, 0.15)),
         Task("comb the hair", "comb", False, _no_objects, _comb_plan,
-             touches=[(_site("hair_front", (0, 0, 0.012)), 0.03), (_site("hair_back", (0, 0, 0.012)), 0.03)]),
-        Task("brush the teeth", "toothbrush", False, _no_objects, _teeth_plan, touches=[(_site("mouth"), 0.025)]),
+             stroke=Stroke(_site("hair_front"), _site("hair_back"), 0.03, 0.08)),
+        Task("brush the teeth", "toothbrush", False, _no_objects, _teeth_plan,
+             stroke=Stroke(_site("mouth"), _site("mouth"), 0.025, 0.03)),
     ]
 }
 
 
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    s = float(np.clip(np.dot(p - a, ab) / max(float(np.dot(ab, ab)), 1e-12), 0.0, 1.0))
+    return float(np.linalg.norm(p - (a + s * ab)))
+
+
 class SuccessMonitor:
-    """Follows the tool tip during execution; judges the task's success predicate at the end."""
+    """Follows the execution step by step and judges the task's success predicate at the end:
+    - no contact on the manikin above FORCE_LIMIT_N, ever (from the arm, a tool or a held object);
+    - `touches` reached in order by the tool tip;
+    - `stroke`: the tip's path length while the tool touches the manikin near the stroke segment;
+    - `dwell`: the tip held near a point for long enough without a break;
+    - `placed`: the final predicate on the objects.
+    """
 
     def __init__(self, task: Task, scene: Scene) -> None:
         self.task, self.scene = task, scene
+        m = scene.m
         self.targets = [(fn(scene), r) for fn, r in task.touches]  # the manikin does not move
         self.reached = 0
-        self.tip_site = scene.m.site("tool_tip").id if task.tool else scene.m.site("tcp").id
-        # Forearm strokes may start at either end: touching both in any order counts.
-        self.any_order = task.name == "wipe the forearm"
-        self.touched: set[int] = set()
+        self.tip_site = m.site("tool_tip").id if task.tool else m.site("tcp").id
+        self.manikin = m.body("manikin").id
+        self.tool = m.body("tool").id if task.tool else -1
+        self.stroke = (task.stroke.a(scene), task.stroke.b(scene)) if task.stroke else None
+        self.stroked = 0.0
+        self.dwell_point = task.dwell.point(scene) if task.dwell else None
+        self.dwelt, self.longest_dwell = 0.0, 0.0
+        self.max_force = 0.0
+        self._prev_tip: np.ndarray | None = None
+        self._prev_time = float(scene.d.time)
+        self._f6 = np.zeros(6)
+
+    def _manikin_contacts(self) -> tuple[float, bool]:
+        """(largest normal force on the manikin now, whether the tool touches it near the stroke)."""
+        m, d = self.scene.m, self.scene.d
+        force, stroking = 0.0, False
+        for i in range(d.ncon):
+            c = d.contact[i]
+            b1, b2 = m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]
+            if self.manikin not in (b1, b2):
+                continue
+            mujoco.mj_contactForce(m, d, i, self._f6)
+            force = max(force, abs(float(self._f6[0])))
+            if self.stroke is not None and self.tool in (b1, b2):
+                stroking |= _segment_distance(c.pos, *self.stroke) < self.task.stroke.radius
+        return force, stroking
 
     def step(self) -> None:
-        tip = self.scene.d.site_xpos[self.tip_site]
-        for i, (p, r) in enumerate(self.targets):
-            if np.linalg.norm(tip - p) < r:
-                self.touched.add(i)
+        d = self.scene.d
+        tip = d.site_xpos[self.tip_site].copy()
+        dt = float(d.time) - self._prev_time
+        force, stroking = self._manikin_contacts()
+        self.max_force = max(self.max_force, force)
+        if stroking and self._prev_tip is not None:
+            self.stroked += float(np.linalg.norm(tip - self._prev_tip))
         if self.reached < len(self.targets):
             p, r = self.targets[self.reached]
             if np.linalg.norm(tip - p) < r:
                 self.reached += 1
+        elif self.dwell_point is not None:
+            near = np.linalg.norm(tip - self.dwell_point) < self.task.dwell.radius
+            self.dwelt = self.dwelt + dt if near else 0.0
+            self.longest_dwell = max(self.longest_dwell, self.dwelt)
+        self._prev_tip, self._prev_time = tip, float(d.time)
+
+    def checks(self) -> dict[str, bool]:
+        """Each part of the predicate (for reports and debugging)."""
+        t = self.task
+        out = {"force": self.max_force <= FORCE_LIMIT_N, "touches": self.reached == len(self.targets)}
+        if t.stroke:
+            out["stroke"] = self.stroked >= t.stroke.length
+        if t.dwell:
+            out["dwell"] = self.longest_dwell >= t.dwell.seconds
+        if t.placed:
+            out["placed"] = bool(t.placed(self.scene))
+        return out
 
     def success(self) -> bool:
-        touched = (len(self.touched) == len(self.targets)) if self.any_order else (
-            self.reached == len(self.targets))
-        placed = self.task.placed(self.scene) if self.task.placed else True
-        return bool(touched and placed)
+        return all(self.checks().values())

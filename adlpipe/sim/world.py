@@ -48,7 +48,9 @@ def _yaw_quat(yaw: float) -> str:
 
 def _arm_xml(tool_xml: str) -> str:
     """A 7-DoF anthropomorphic arm (yaw, pitch, roll, elbow, roll, wrist pitch, roll) with a parallel gripper."""
-    link = 'rgba="0.85 0.85 0.9 1" contype="0" conaffinity="0"'
+    # The arm, hand and tools collide with the manikin only (ROBOT_CONTACT vs MANIKIN_AFFINITY): touching the
+    # person is a real contact with a measurable force; the table and objects stay out of the arm's way.
+    link = f'rgba="0.85 0.85 0.9 1" {ROBOT_CONTACT}'
     return f"""
     <body name="arm_base" pos="0 0 0" gravcomp="1">
       <geom type="cylinder" size="0.07 0.03" pos="0 0 0.03" {link}/>
@@ -73,16 +75,16 @@ def _arm_xml(tool_xml: str) -> str:
                   <body name="hand" pos="0 0 0" gravcomp="1">
                     <joint name="joint7" axis="0 0 1" range="-2.9 2.9"/>
                     <geom type="box" size="0.05 0.025 0.02" pos="0 0 0.05" rgba="0.3 0.3 0.35 1"
-                          contype="0" conaffinity="0"/>
+                          {ROBOT_CONTACT}/>
                     <body name="finger_l" pos="0 0 0.09" gravcomp="1">
                       <joint name="finger_left" type="slide" axis="1 0 0" range="0 0.04"/>
                       <geom type="box" size="0.006 0.012 0.025" pos="0.006 0 0" rgba="0.2 0.2 0.2 1"
-                            contype="0" conaffinity="0"/>
+                            {ROBOT_CONTACT}/>
                     </body>
                     <body name="finger_r" pos="0 0 0.09" gravcomp="1">
                       <joint name="finger_right" type="slide" axis="-1 0 0" range="0 0.04"/>
                       <geom type="box" size="0.006 0.012 0.025" pos="-0.006 0 0" rgba="0.2 0.2 0.2 1"
-                            contype="0" conaffinity="0"/>
+                            {ROBOT_CONTACT}/>
                     </body>
                     <site name="tcp" pos="0 0 0.11" size="0.006" rgba="1 0 0 0.6"/>
                     {tool_xml}
@@ -96,49 +98,69 @@ def _arm_xml(tool_xml: str) -> str:
     </body>"""
 
 
-# Tools held rigidly in the hand for the contact tasks; each ends in a `tool_tip` site TOOL_LENGTH below the tcp.
+# Tools held rigidly in the hand for the contact tasks; each ends in a `tool_tip` site. The sponge, comb and broom
+# tips are TOOL_LENGTH below the tcp; the spoon and toothbrush are L-shaped (a vertical handle, then a head
+# reaching TOOL_REACH towards the manikin) so that the handle stays clear of the face.
 TOOL_LENGTH = 0.07
+TOOL_REACH = 0.035
+ROBOT_CONTACT = 'contype="2" conaffinity="0"'  # collides with geoms whose conaffinity has bit 2: the manikin only
+# The manikin collides with objects (bit 1) and the robot (bit 2). Its skin is soft (a long contact time constant,
+# and solmix so that its parameters win over the tool's): pressing a tool a few mm in costs a few newtons, as on a
+# person, instead of the tens of newtons of a rigid contact against the stiff position-controlled arm.
+MANIKIN_CONTACT = 'contype="1" conaffinity="3" solref="0.08 1" solimp="0.5 0.95 0.02" solmix="100"'
+
 _TOOLS = {
     "broom": '<geom type="box" size="0.06 0.01 0.02" pos="0 0 {tip_c}" rgba="0.6 0.4 0.2 1" mass="0.05" '
-    'friction="0.8 0.01 0.001"/>',
-    "sponge": '<geom type="box" size="0.025 0.02 0.015" pos="0 0 {tip_c}" rgba="1 0.9 0.2 1" contype="0" '
-    'conaffinity="0"/>',
-    "spoon": '<geom type="capsule" fromto="0 0 0.09 0 0 {tip}" size="0.006" rgba="0.8 0.8 0.8 1" contype="0" '
-    'conaffinity="0"/>',
-    "comb": '<geom type="box" size="0.04 0.004 0.02" pos="0 0 {tip_c}" rgba="0.1 0.1 0.1 1" contype="0" '
-    'conaffinity="0"/>',
-    "toothbrush": '<geom type="capsule" fromto="0 0 0.09 0 0 {tip}" size="0.005" rgba="0.2 0.6 1 1" contype="0" '
-    'conaffinity="0"/>',
+    'friction="0.8 0.01 0.001" contype="3" conaffinity="1"/>',
+    "sponge": '<geom type="box" size="0.025 0.02 0.015" pos="0 0 {tip_c}" rgba="1 0.9 0.2 1" {robot}/>',
+    "spoon": '<geom type="capsule" fromto="0 0 0.09 0 0 {tip}" size="0.006" rgba="0.8 0.8 0.8 1" {robot}/>'
+    '<geom type="capsule" fromto="0 0 {tip} 0 {reach} {tip}" size="0.006" rgba="0.8 0.8 0.8 1" {robot}/>',
+    "comb": '<geom type="box" size="0.04 0.004 0.02" pos="0 0 {tip_c}" rgba="0.1 0.1 0.1 1" {robot}/>',
+    "toothbrush": '<geom type="capsule" fromto="0 0 0.09 0 0 {tip}" size="0.005" rgba="0.2 0.6 1 1" {robot}/>'
+    '<geom type="capsule" fromto="0 0 {tip} 0 {reach} {tip}" size="0.005" rgba="0.2 0.6 1 1" {robot}/>',
 }
+L_SHAPED = {"spoon", "toothbrush"}
+
+
+def tool_tip_offset(tool: str | None) -> np.ndarray:
+    """Where a held tool's tip is relative to the tcp, in base_link (the hand points down, its y along -y)."""
+    if tool is None:
+        return np.zeros(3)
+    return np.array([0.0, TOOL_REACH if tool in L_SHAPED else 0.0, -TOOL_LENGTH])
 
 
 def _tool_xml(tool: str | None) -> str:
     if tool is None:
         return ""
     tip = 0.11 + TOOL_LENGTH
-    geom = _TOOLS[tool].format(tip=f"{tip:.3f}", tip_c=f"{tip - 0.015:.3f}")
-    return f'<body name="tool" pos="0 0 0">{geom}<site name="tool_tip" pos="0 0 {tip:.3f}" size="0.006"/></body>'
+    reach = -TOOL_REACH if tool in L_SHAPED else 0.0  # hand y is world -y
+    geom = _TOOLS[tool].format(tip=f"{tip:.3f}", tip_c=f"{tip - 0.015:.3f}", reach=f"{reach:.3f}",
+                               robot=ROBOT_CONTACT)
+    return (f'<body name="tool" pos="0 0 0">{geom}<site name="tool_tip" pos="0 {reach:.3f} {tip:.3f}" '
+            'size="0.006"/></body>')
 
 
 def _manikin_xml(x: float, y: float, z: float, yaw: float) -> str:
     """A seated manikin facing the robot (-y). Sites mark the parts the tasks touch."""
-    skin = 'rgba="0.93 0.78 0.66 1"'
+    skin = f'rgba="0.93 0.78 0.66 1" {MANIKIN_CONTACT}'
     return f"""
     <body name="manikin" pos="{x} {y} {z}" quat="{_yaw_quat(yaw)}">
-      <geom type="box" size="0.17 0.09 0.22" pos="0 0.14 0.05" rgba="0.3 0.45 0.7 1"/>
+      <geom type="box" size="0.17 0.09 0.22" pos="0 0.14 0.05" rgba="0.3 0.45 0.7 1" {MANIKIN_CONTACT}/>
       <geom type="capsule" fromto="0 0.12 0.26 0 0.12 0.32" size="0.04" {skin}/>
       <geom name="head" type="sphere" size="0.085" pos="0 0.10 0.40" {skin}/>
-      <geom type="sphere" size="0.088" pos="0 0.115 0.43" rgba="0.25 0.15 0.08 1"/>
+      <geom name="hair" type="sphere" size="0.088" pos="0 0.115 0.43" rgba="0.25 0.15 0.08 1"
+            {MANIKIN_CONTACT}/>
       <geom type="capsule" fromto="-0.22 0.05 0.06 -0.12 -0.12 0.035" size="0.03" {skin}/>
       <geom type="capsule" fromto="0.22 0.05 0.06 0.16 -0.10 0.035" size="0.03" {skin}/>
       <geom type="sphere" size="0.035" pos="0.16 -0.12 0.035" {skin}/>
       <site name="nose" pos="0 0.015 0.40" size="0.01" rgba="1 0 0 0.5"/>
       <site name="mouth" pos="0 0.025 0.355" size="0.01" rgba="1 0 0 0.5"/>
       <site name="hair_front" pos="0 0.06 0.50" size="0.01" rgba="1 0 0 0.5"/>
+      <site name="hair_mid" pos="0 0.11 0.518" size="0.01" rgba="1 0 0 0.5"/>
       <site name="hair_back" pos="0 0.16 0.51" size="0.01" rgba="1 0 0 0.5"/>
       <site name="head_top" pos="0 0.11 0.52" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="forearm_start" pos="-0.21 0.03 0.09" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="forearm_end" pos="-0.13 -0.10 0.07" size="0.01" rgba="1 0 0 0.5"/>
+      <site name="forearm_start" pos="-0.195 0.005 0.084" size="0.01" rgba="1 0 0 0.5"/>
+      <site name="forearm_end" pos="-0.135 -0.095 0.069" size="0.01" rgba="1 0 0 0.5"/>
       <site name="hand_rest" pos="0.16 -0.18 0.04" size="0.01" rgba="1 0 0 0.5"/>
     </body>"""
 
@@ -151,7 +173,8 @@ _OBJECTS = {
     "cup": '<geom type="cylinder" size="0.03 0.05" pos="0 0 0.05" rgba="0.5 0.8 1 1" mass="0.15"/>'
     '<site name="cup_grasp" pos="0 0 0.09" size="0.005"/>',
     "towel": '<geom type="box" size="0.06 0.06 0.008" pos="0 0 0.008" rgba="0.95 0.95 0.95 1" mass="0.05"/>'
-    '<site name="towel_grasp" pos="0 0 0.02" size="0.005"/>',
+    '<site name="towel_grasp_l" pos="-0.02 0 0.02" size="0.005"/><site name="towel_grasp_r" pos="0.02 0 0.02" '
+    'size="0.005"/>',
     "hat": '<geom type="cylinder" size="0.07 0.008" pos="0 0 0.008" rgba="0.2 0.2 0.25 1" mass="0.06"/>'
     '<geom type="cylinder" size="0.045 0.03" pos="0 0 0.045" rgba="0.2 0.2 0.25 1" mass="0.04"/>'
     '<site name="hat_grasp" pos="0 0 0.085" size="0.005"/>',

@@ -1,10 +1,15 @@
 """Training objectives and samplers, independent of the network that is trained with them.
 
-Flow matching: x_t = t*x1 + (1-t)*x0 with x0 ~ N(0, I) at train AND test time, target velocity x1 - x0 (MSE);
-sampled by integrating dx/dt = v from t=0 to 1 with Euler, midpoint or RK4 in 1..16 steps. The flow time is fed
-to the sinusoidal embedding scaled by TIME_SCALE (t*100), so it spans the same range as the diffusion steps.
+Flow matching: x_t = t*x1 + (1-t)*x0 with x0 ~ N(0, I) at train AND test time; sampled by integrating
+dx/dt = v from t=0 to 1 with Euler, midpoint or RK4 in 1..16 steps. Two parameterisations of v:
+  - "x1" (default): the network predicts the clean trajectory x1_hat, trained with MSE to x1, and
+    v = (x1_hat - x_t) / (1 - t), 1 - t clamped at T_EPS (Li & He 2025, "x-prediction"). One Euler step returns
+    x1_hat exactly, so the network never has to cancel its input noise through GroupNorm/Mish layers.
+  - "velocity" (the paper's): the network predicts v directly, trained with MSE to x1 - x0.
+The flow time is fed to the sinusoidal embedding scaled by TIME_SCALE (t*100), the range of the diffusion steps.
 DDPM: 100 training steps, squaredcos_cap_v2 betas, epsilon prediction; sampled by DDPM (ancestral) or DDIM
-(eta=0) on 1..16 'trailing' timesteps (the first step starts at t=99, i.e. from pure noise).
+(eta=0). Timestep spacing "leading" (diffusers' default, what Diffusion Policy uses: 16 steps = 90, 84, ..., 0) or
+"trailing" (16 steps = 99, 93, ..., 5; the first step starts from pure noise, which few-step sampling needs).
 MSE: behaviour cloning by direct regression of the trajectory.
 """
 
@@ -19,16 +24,39 @@ import torch.nn.functional as F
 Denoiser = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]  # (x, t, cond) -> same shape as x
 
 
+T_EPS = 0.05  # the smallest 1 - t that x-prediction divides by
+
+
+def interpolate(x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """The flow-matching path x_t = t*x1 + (1-t)*x0; t has one entry per batch element."""
+    t = t.reshape(-1, *([1] * (x1.dim() - 1)))
+    return t * x1 + (1 - t) * x0
+
+
+def velocity_from_x1(x1_hat: torch.Tensor, xt: torch.Tensor, t: torch.Tensor | float) -> torch.Tensor:
+    """The velocity that carries x_t to the predicted clean sample x1_hat by t = 1: (x1_hat - x_t) / (1 - t)."""
+    if isinstance(t, torch.Tensor):
+        t = t.reshape(-1, *([1] * (xt.dim() - 1)))
+        return (x1_hat - xt) / (1 - t).clamp(min=T_EPS)
+    return (x1_hat - xt) / max(1.0 - t, T_EPS)
+
+
 class FlowMatching:
     TIME_SCALE = 100.0
     methods = ("euler", "midpoint", "rk4")
+    predictions = ("x1", "velocity")
+
+    def __init__(self, prediction: str = "x1") -> None:
+        if prediction not in self.predictions:
+            raise ValueError(f"unknown flow-matching prediction {prediction!r}; use one of {self.predictions}")
+        self.prediction = prediction
 
     def loss(self, net: Denoiser, x1: torch.Tensor, cond: torch.Tensor,
              gen: torch.Generator | None = None) -> torch.Tensor:
         x0 = torch.randn(x1.shape, generator=gen, device=x1.device)
         t = torch.rand(x1.shape[0], generator=gen, device=x1.device)
-        xt = t[:, None, None] * x1 + (1 - t[:, None, None]) * x0
-        return F.mse_loss(net(xt, t * self.TIME_SCALE, cond), x1 - x0)
+        out = net(interpolate(x0, x1, t), t * self.TIME_SCALE, cond)
+        return F.mse_loss(out, x1 if self.prediction == "x1" else x1 - x0)
 
     @torch.no_grad()
     def sample(self, net: Denoiser, cond: torch.Tensor, shape: tuple[int, ...], steps: int, method: str = "euler",
@@ -40,7 +68,8 @@ class FlowMatching:
         b = shape[0]
 
         def v(x: torch.Tensor, t: float) -> torch.Tensor:
-            return net(x, torch.full((b,), t * self.TIME_SCALE, device=x.device), cond)
+            out = net(x, torch.full((b,), t * self.TIME_SCALE, device=x.device), cond)
+            return velocity_from_x1(out, x, t) if self.prediction == "x1" else out
 
         for i in range(steps):
             t = i * dt
@@ -69,9 +98,13 @@ def squaredcos_cap_v2(n: int, max_beta: float = 0.999) -> torch.Tensor:
 
 
 class DDPM:
-    methods = ("ddpm", "ddim")
+    methods = ("ddpm", "ddim", "ddpm_trailing", "ddim_trailing")  # the suffix overrides the spacing
+    spacings = ("leading", "trailing")
 
-    def __init__(self, train_steps: int = 100, clip_sample: bool = True) -> None:
+    def __init__(self, train_steps: int = 100, clip_sample: bool = True, spacing: str = "leading") -> None:
+        if spacing not in self.spacings:
+            raise ValueError(f"unknown timestep spacing {spacing!r}; use one of {self.spacings}")
+        self.spacing = spacing
         self.n = train_steps
         self.betas = squaredcos_cap_v2(train_steps)
         self.abar = torch.cumprod(1 - self.betas, 0)
@@ -85,10 +118,14 @@ class DDPM:
         xk = a.sqrt() * x1 + (1 - a).sqrt() * noise
         return F.mse_loss(net(xk, k.float(), cond), noise)
 
-    def timesteps(self, steps: int) -> list[int]:
-        """'trailing' spacing: steps=1 -> [99]; steps=16 -> [99, 93, ..., 5]."""
+    def timesteps(self, steps: int, spacing: str | None = None) -> list[int]:
+        """'leading' (diffusers' default): steps=16 -> [90, 84, ..., 0], steps=1 -> [0];
+        'trailing': steps=1 -> [99]; steps=16 -> [99, 93, ..., 5]."""
         if not 1 <= steps <= self.n:
             raise ValueError(f"steps must be in 1..{self.n}")
+        if (spacing or self.spacing) == "leading":
+            ratio = self.n // steps
+            return [i * ratio for i in reversed(range(steps))]
         return [int(round(self.n - i * self.n / steps)) - 1 for i in range(steps)]
 
     @torch.no_grad()
@@ -96,8 +133,9 @@ class DDPM:
                gen: torch.Generator | None = None) -> torch.Tensor:
         if method not in self.methods:
             raise ValueError(f"unknown diffusion sampler {method!r}; use one of {self.methods}")
+        method, _, spacing = method.partition("_")
         x = torch.randn(shape, generator=gen, device=cond.device)
-        ts = self.timesteps(steps)
+        ts = self.timesteps(steps, spacing or None)
         abar = self.abar.tolist()
         for i, t in enumerate(ts):
             prev = ts[i + 1] if i + 1 < len(ts) else -1

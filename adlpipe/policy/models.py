@@ -1,9 +1,13 @@
-"""The four named policies: an image encoder + a network + an objective, in two size presets.
+"""The named policies: an image encoder + a network + an objective, in two size presets.
 
-    fm_cnn          flow matching, 1D conditional U-Net        (the paper's method)
-    fm_transformer  flow matching, transformer denoiser
-    dp_cnn          Diffusion Policy: DDPM, 1D conditional U-Net
-    bc_transformer  behaviour cloning: transformer regressor, MSE
+    fm_cnn           flow matching (clean-trajectory prediction), 1D conditional U-Net   (the paper's method)
+    fm_cnn_velocity  flow matching with the paper's velocity target, same U-Net           (ablation)
+    fm_transformer   flow matching (clean-trajectory prediction), transformer denoiser
+    dp_cnn           Diffusion Policy: DDPM, epsilon prediction, same U-Net
+    bc_cnn           behaviour cloning, MSE, same U-Net fed a constant input (x = 0, t = 0)
+    bc_transformer   behaviour cloning, MSE, transformer regressor                       (the paper's BC)
+
+FM-CNN, DP-CNN and BC-CNN differ only by their objective; FM-Transformer vs BC-Transformer is the paper's pair.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ from dataclasses import asdict, dataclass, replace
 import torch
 from torch import nn
 
-from .data import ACTION_DIM
+from ..data import ACTION_DIM
 from .nets.resnet import ResNet18GN
 from .nets.transformer import TransformerDenoiser, TransformerRegressor
 from .nets.unet1d import ConditionalUnet1D
@@ -21,11 +25,15 @@ from .objectives import DDPM, FlowMatching, MSERegression
 
 MODELS = {  # name -> (objective, network)
     "fm_cnn": ("fm", "unet"),
+    "fm_cnn_velocity": ("fm_velocity", "unet"),
     "fm_transformer": ("fm", "transformer"),
     "dp_cnn": ("ddpm", "unet"),
+    "bc_cnn": ("mse", "unet_regressor"),
     "bc_transformer": ("mse", "transformer_regressor"),
 }
-DEFAULT_METHOD = {"fm": "euler", "ddpm": "ddpm", "mse": "direct"}  # DDPM-16 beat DDIM-16 here (5.0 vs 10.3 px)
+# Each objective's default sampler and step count: what validation selects on, replay runs and the report compares.
+DEFAULT_METHOD = {"fm": "euler", "fm_velocity": "euler", "ddpm": "ddpm", "mse": "direct"}
+DEFAULT_STEPS = {"fm": 1, "fm_velocity": 1, "ddpm": 16, "mse": 1}
 
 
 @dataclass(frozen=True)
@@ -75,7 +83,22 @@ def preset(name: str, model: str, **overrides: object) -> ModelConfig:
 
 
 def make_objective(kind: str) -> FlowMatching | DDPM | MSERegression:
+    if kind == "fm_velocity":
+        return FlowMatching("velocity")
     return {"fm": FlowMatching, "ddpm": DDPM, "mse": MSERegression}[kind]()
+
+
+class UnetRegressor(nn.Module):
+    """The conditional U-Net as a regressor: fed a constant input (zeros) at time 0, it maps the observation feature
+    to the trajectory through exactly the layers that FM-CNN and DP-CNN use."""
+
+    def __init__(self, unet: ConditionalUnet1D, horizon: int) -> None:
+        super().__init__()
+        self.unet, self.horizon = unet, horizon
+
+    def forward(self, cond: torch.Tensor) -> torch.Tensor:
+        x = cond.new_zeros(cond.shape[0], self.horizon, ACTION_DIM)
+        return self.unet(x, cond.new_zeros(cond.shape[0]), cond)
 
 
 class Policy(nn.Module):
@@ -89,8 +112,10 @@ class Policy(nn.Module):
         self.kind, net = MODELS[cfg.model]
         self.objective = make_objective(self.kind)
         self.encoder = ResNet18GN(cfg.in_channels, cfg.obs_dim, cfg.encoder_width)
-        if net == "unet":
+        if net in ("unet", "unet_regressor"):
             self.net = ConditionalUnet1D(ACTION_DIM, cfg.obs_dim, cfg.down_dims, cfg.kernel, cfg.groups)
+            if net == "unet_regressor":
+                self.net = UnetRegressor(self.net, cfg.horizon)
         elif net == "transformer":
             self.net = TransformerDenoiser(ACTION_DIM, cfg.obs_dim, cfg.horizon, cfg.d_model, cfg.n_layers, cfg.n_heads)
         else:
@@ -100,6 +125,15 @@ class Policy(nn.Module):
     @property
     def default_method(self) -> str:
         return DEFAULT_METHOD[self.kind]
+
+    @property
+    def default_steps(self) -> int:
+        return DEFAULT_STEPS[self.kind]
+
+    @property
+    def family(self) -> str:
+        """fm, ddpm or mse: which samplers apply."""
+        return self.kind.split("_")[0]
 
     def loss(self, obs: torch.Tensor, action: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
         return self.objective.loss(self.net, action, self.encoder(obs), gen)

@@ -1,1 +1,0 @@
-"""Networks only; the objectives (flow matching, DDPM, MSE) live in adlpipe.objectives."""

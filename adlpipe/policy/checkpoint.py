@@ -1,0 +1,38 @@
+"""Checkpoints: written atomically, read with torch.load(weights_only=True) (never unpickling code from a file),
+and a trained policy loaded for inference without importing the training loop."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from ..atomic import atomic_path
+from ..errors import AdlError
+from .models import ModelConfig, Policy
+
+
+def save_atomic(obj: dict, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
+def load_checkpoint(path: Path) -> dict:
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)  # never unpickle code from a user file
+    except Exception as exc:  # noqa: BLE001 - a corrupt or foreign file
+        raise AdlError(f"{path}: not a loadable adlpipe checkpoint ({type(exc).__name__}: {exc})") from exc
+
+
+def load_policy(path: Path) -> tuple[Policy, dict]:
+    """An EMA policy saved by training (model.pt: the last epoch, best.pt: the best validation epoch), ready for
+    inference, and its checkpoint metadata."""
+    ck = load_checkpoint(path)
+    if "config" not in ck or "ema" not in ck:
+        raise AdlError(f"{path}: not an adlpipe policy checkpoint (no config/ema)")
+    try:
+        policy = Policy(ModelConfig.from_dict(ck["config"]))
+        policy.load_state_dict(ck["ema"])
+    except (TypeError, ValueError, KeyError, RuntimeError) as exc:
+        raise AdlError(f"{path}: checkpoint does not match this adlpipe's models ({type(exc).__name__})") from exc
+    return policy.eval(), ck

@@ -1,0 +1,1 @@
+"""Networks only; the objectives (flow matching, DDPM, MSE) live in adlpipe.policy.objectives."""
