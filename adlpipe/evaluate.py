@@ -2,16 +2,20 @@
 
     python -m adlpipe.evaluate --models models/fm_cnn models/dp_cnn ... [--steps 1 2 4 8 16]
 
-Per model and step count: mean per-waypoint error in pixels (2D, at the stored image size) and centimetres (3D),
-per task and overall; best-of-K error over K samples (how well the samples cover the demonstrated mode); inference
-milliseconds per sample (batch 1, encoder included, median of repeated runs). Writes a metrics JSON, a CSV of
-error/latency vs steps for `dvc plots`, and a markdown table shaped like the paper's Table 1.
+Both checkpoints of each model are evaluated: "best" (best.pt, the epoch with the lowest validation px) and "last"
+(model.pt). Per checkpoint, sampler and step count: mean per-waypoint error in pixels of the stored image (its size
+is stated; px224 rescales it to a 224 px image, the paper's input) and centimetres (3D), per task and overall;
+best-of-K error over K samples (how well the samples cover the demonstrated mode); inference milliseconds per sample
+(batch 1, encoder included, median of repeated runs). Writes the headline figures for `dvc metrics` (--metrics, a
+few values per model), every figure with per-task detail (--details), a CSV of error/latency vs steps for
+`dvc plots`, and a markdown table shaped like the paper's Table 1.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import statistics
 import sys
 import time
@@ -25,9 +29,13 @@ from .atomic import atomic_path, write_json_atomic, write_text_atomic
 from .data import Normalizer, TrajectoryDataset
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
+from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
 from .split import load_split
 
 STEPS = [1, 2, 4, 8, 16]
+CHECKPOINTS = {"best": "best.pt", "last": "model.pt"}
+DEFAULTS = {name: f"{DEFAULT_METHOD[kind]}/{DEFAULT_STEPS[kind]}" for name, (kind, _net) in MODELS.items()}
+PAPER_IMAGE_PX = 224
 
 
 def multimodal_tasks() -> set[str]:
@@ -56,17 +64,20 @@ def latency_ms(policy, obs: torch.Tensor, steps: int, method: str, repeats: int)
 
 
 def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: list[int],
-                   methods_by_kind: dict[str, list[str]], k: int, repeats: int, seed: int) -> dict:
-    """methods_by_kind: the samplers to evaluate for each objective ("fm", "ddpm"); others use their default."""
-    policy, ck = load_policy(model_dir / "model.pt")
+                   methods_by_kind: dict[str, list[str]], k: int, repeats: int, seed: int,
+                   checkpoint: str = "model.pt", timings: dict | None = None) -> dict:
+    """methods_by_kind: the samplers to evaluate for each objective family ("fm", "ddpm"); others use their
+    default. timings: latencies already measured for the same network (another checkpoint), reused."""
+    policy, ck = load_policy(model_dir / checkpoint)
     cfg = policy.cfg
+    image_px = _stored_image_px(data)
     ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth)
     norm = Normalizer(ck["stats"])
     obs = torch.stack([ds[i][0] for i in range(len(ds))])
     gt = norm.unnormalize(torch.stack([ds[i][1] for i in range(len(ds))]))
     tasks = [ds.task(i) for i in range(len(ds))]
-    methods = methods_by_kind.get(policy.kind) or [policy.default_method]
-    if policy.kind == "mse":
+    methods = methods_by_kind.get(policy.family) or [policy.default_method]
+    if policy.family == "mse":
         steps_list = [1]
     by_task = {t: [i for i, tt in enumerate(tasks) if tt == t] for t in sorted(set(tasks))}
     multimodal = multimodal_tasks()
@@ -79,40 +90,75 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
             px, cm = waypoint_errors(pred, gt)
             # best-of-K: the closest of K samples to the demonstration (for BC all K are the same prediction)
             best_px, best_cm = px.clone(), cm.clone()
-            for _ in range(k - 1 if policy.kind != "mse" else 0):
+            for _ in range(k - 1 if policy.family != "mse" else 0):
                 p2, c2 = waypoint_errors(norm.unnormalize(policy.predict(obs, steps, method, gen)), gt)
                 best_px, best_cm = torch.minimum(best_px, p2), torch.minimum(best_cm, c2)
             per_task = {t: {"px": float(px[idx].mean()), "cm": float(cm[idx].mean()), "n": len(idx)}
                         for t, idx in by_task.items()}
-            rows[f"{method}/{steps}"] = {
-                "model": cfg.model, "method": method, "steps": steps,
-                "evaluations": policy.objective.evaluations(steps, method),
-                "px": float(px.mean()), "cm": float(cm.mean()),
+            key = f"{method}/{steps}"
+            ms = (timings or {}).get(key, {}).get("ms")
+            rows[key] = {
+                "model": cfg.model, "method": method, "steps": steps, "epoch": int(ck.get("epoch", 0)),
+                "evaluations": policy.objective.evaluations(steps, method), "image_px": image_px,
+                "input_px": cfg.image_size, "px": float(px.mean()),
+                "px224": float(px.mean()) * PAPER_IMAGE_PX / image_px, "cm": float(cm.mean()),
                 "px_multimodal": float(px[mm].mean()) if mm else None,
                 "cm_multimodal": float(cm[mm].mean()) if mm else None,
                 f"best_of_{k}_px": float(best_px.mean()), f"best_of_{k}_cm": float(best_cm.mean()),
-                "ms": latency_ms(policy, obs[:1], steps, method, repeats), "per_task": per_task,
+                "ms": ms if ms is not None else latency_ms(policy, obs[:1], steps, method, repeats),
+                "per_task": per_task,
             }
     return rows
 
 
-def table1(results: dict[str, dict], k: int) -> str:
-    lines = [f"| method | sampler | steps | px | cm | ms | best-of-{k} px | px (multimodal tasks) |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for model, rows in results.items():
-        for r in rows.values():
-            mm = f"{r['px_multimodal']:.2f}" if r["px_multimodal"] is not None else "-"
-            lines.append(f"| {model} | {r['method']} | {r['steps']} | {r['px']:.2f} | {r['cm']:.2f} | {r['ms']:.1f} | "
-                         f"{r[f'best_of_{k}_px']:.2f} | {mm} |")
+def _stored_image_px(data: Path) -> int:
+    with h5py.File(data, "r") as f:
+        first = schema.episode_names(f)[0]
+        return int(f[schema.EPISODES][first]["rgb"].shape[0])
+
+
+def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
+    """One row per model, checkpoint, sampler and step count."""
+    any_row = next(r for ck in results.values() for rows in ck.values() for r in rows.values())
+    lines = [f"px: pixels of the {any_row['image_px']} px stored image (models see {any_row['input_px']} px); "
+             f"px224: the same error on a {PAPER_IMAGE_PX} px image. best: the checkpoint with the lowest validation "
+             "px; last: the final one.", "",
+             f"| method | checkpoint (epoch) | converged | sampler | steps | px | px224 | cm | ms | best-of-{k} px | "
+             "px (multimodal tasks) |",
+             "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for model, by_ck in results.items():
+        conv = {True: "yes", False: "**no**", None: "?"}[training.get(model, {}).get("converged")]
+        for ck, rows in by_ck.items():
+            for r in rows.values():
+                mm = f"{r['px_multimodal']:.2f}" if r["px_multimodal"] is not None else "-"
+                lines.append(f"| {model} | {ck} ({r['epoch']}) | {conv} | {r['method']} | {r['steps']} | "
+                             f"{r['px']:.2f} | {r['px224']:.2f} | {r['cm']:.2f} | {r['ms']:.1f} | "
+                             f"{r[f'best_of_{k}_px']:.2f} | {mm} |")
     return "\n".join(lines) + "\n"
+
+
+def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -> dict:
+    """The few numbers `dvc metrics show` prints: per model, its best checkpoint with the default sampler (and 16
+    steps for the generative ones), and whether it converged."""
+    out: dict = {"n_test": n_test}
+    for model, by_ck in results.items():
+        best = by_ck["best"]
+        default = best.get(DEFAULTS.get(model, "")) or min(best.values(), key=lambda r: r["steps"])
+        h = {"px": round(default["px"], 3), "px224": round(default["px224"], 3), "ms": round(default["ms"], 2),
+             "steps": default["steps"], "converged": training.get(model, {}).get("converged")}
+        r16 = best.get(f"{default['method']}/16")
+        if r16 is not None and default["steps"] != 16:
+            h["px_16_steps"] = round(r16["px"], 3)
+        out[model] = h
+    return out
 
 
 def write_steps_csv(path: Path, results: dict[str, dict], steps_list: list[int]) -> None:
     """Wide CSV for `dvc plots`: one row per step count, columns <model>_<sampler>_{px,cm,ms}. A regressor does
     not depend on steps: its single figure is repeated as a flat reference line."""
     series: dict[str, dict[int, dict]] = {}
-    for model, rows in results.items():
-        for r in rows.values():
+    for model, by_ck in results.items():
+        for r in by_ck["last"].values():
             series.setdefault(f"{model}_{r['method']}", {})[r["steps"]] = r
     cols = [f"{name}_{m}" for name in series for m in ("px", "cm", "ms")]
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
@@ -126,6 +172,14 @@ def write_steps_csv(path: Path, results: dict[str, dict], steps_list: list[int])
             w.writerow(row)
 
 
+def _training_metrics(model_dir: Path) -> dict:
+    """What training wrote (val px, convergence, optimiser steps); empty if it is not there."""
+    try:
+        return json.loads((model_dir / "metrics.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m adlpipe.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -134,12 +188,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
     p.add_argument("--steps", nargs="+", type=int, default=STEPS)
     p.add_argument("--fm-methods", nargs="+", default=["euler"], help="euler, midpoint, rk4")
-    p.add_argument("--dp-methods", nargs="+", default=["ddim", "ddpm"], help="ddim, ddpm")
+    p.add_argument("--dp-methods", nargs="+", default=["ddpm", "ddim", "ddpm_trailing"],
+                   help="ddpm, ddim (leading spacing, as Diffusion Policy), ddpm_trailing, ddim_trailing")
     p.add_argument("--best-of", type=int, default=8, help="K samples for the best-of-K error")
     p.add_argument("--repeats", type=int, default=20, help="timed runs per latency figure (median)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0)
-    p.add_argument("--metrics", type=Path, default=Path("metrics/eval.json"))
+    p.add_argument("--metrics", type=Path, default=Path("metrics/eval.json"), help="headline figures")
+    p.add_argument("--details", type=Path, default=Path("metrics/eval_details.json"),
+                   help="every figure, per checkpoint, sampler, step count and task")
     p.add_argument("--plots", type=Path, default=Path("metrics/steps.csv"))
     p.add_argument("--table", type=Path, default=Path("reports/table1.md"))
     args = p.parse_args(argv)
@@ -153,20 +210,29 @@ def main(argv: list[str] | None = None) -> int:
         missing = set(split["test"]) - set(schema.episode_names(f))
     if missing:
         raise AdlError(f"{args.data}: {len(missing)} test episode(s) of the split are not in the dataset")
-    results = {}
+    results: dict[str, dict] = {}
+    training: dict[str, dict] = {}
+    methods = {"fm": args.fm_methods, "ddpm": args.dp_methods}
     for d in args.models:
-        if not (d / "model.pt").exists():
-            raise AdlError(f"{d}: no model.pt; train it first (python -m adlpipe.train)")
-        results[d.name] = evaluate_model(d, args.data, split["test"], args.steps,
-                                         {"fm": args.fm_methods, "ddpm": args.dp_methods}, args.best_of,
-                                         args.repeats, args.seed)
-        best = min(results[d.name].values(), key=lambda r: r["px"])
-        print(f"{d.name}: best {best['px']:.2f} px / {best['cm']:.2f} cm ({best['method']}, {best['steps']} steps)")
-    write_json_atomic(args.metrics, {"n_test": len(split["test"]), "best_of": args.best_of, "models": results})
+        for name in CHECKPOINTS.values():
+            if not (d / name).exists():
+                raise AdlError(f"{d}: no {name}; train it first (python -m adlpipe.train)")
+        last = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
+                              args.seed)
+        best = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
+                              args.seed, CHECKPOINTS["best"], timings=last)
+        results[d.name] = {"best": best, "last": last}
+        training[d.name] = _training_metrics(d)
+        top = min(best.values(), key=lambda r: r["px"])
+        print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
+              f"{top['steps']} steps){'' if training[d.name].get('converged') else ', not converged'}")
+    write_json_atomic(args.details, {"n_test": len(split["test"]), "best_of": args.best_of, "training": training,
+                                     "models": results})
+    write_json_atomic(args.metrics, headline(results, training, len(split["test"])))
     write_steps_csv(args.plots, results, args.steps)
     title = "# Trajectory error and inference time on the test split\n\n"
-    write_text_atomic(args.table, title + table1(results, args.best_of))
-    print(f"wrote {args.metrics}, {args.plots}, {args.table}")
+    write_text_atomic(args.table, title + table1(results, args.best_of, training))
+    print(f"wrote {args.metrics}, {args.details}, {args.plots}, {args.table}")
     return 0
 
 

@@ -2,6 +2,11 @@
 
     python -m adlpipe.replay --models models/fm_cnn models/dp_cnn models/bc_transformer
 
+Flow-matching models run at every --fm-steps (default 1 and 16), DP at --dp-steps (default 16), BC once; each
+from its best validation checkpoint (--checkpoint best) unless told otherwise. Success is the task's predicate in
+adlpipe.sim.tasks: no contact force on the manikin above 20 N, grasps within 1 cm, strokes in contact, the spoon
+held at the mouth, objects where they belong.
+
 Each test episode's scene is rebuilt from the initial object and manikin poses stored with it; the predicted 3D
 trajectory (32 waypoints, base frame) is executed open loop over the demonstration's duration by the same arm
 controller and grasp rule that recorded the demonstrations. `demo` (the recorded trajectory itself) is always
@@ -29,7 +34,7 @@ from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
 from .split import load_split
 
-DEFAULT_STEPS = {"fm": 1, "ddpm": 16, "mse": 1}
+CHECKPOINTS = {"best": "best.pt", "last": "model.pt"}
 
 
 def _replay_one(job: tuple) -> tuple[str, str, bool]:
@@ -45,9 +50,9 @@ def _closed_loop_one(job: tuple) -> tuple[str, str, bool]:
     """Closed-loop replay of one episode with one model (runs in a pool process: loads the model itself)."""
     from .sim.episode import replay_closed_loop, spec_from_objects
 
-    label, model_dir, ep, steps, execute, seed = job
+    label, model_dir, checkpoint, ep, steps, execute, seed = job
     torch.set_num_threads(1)
-    policy, ck = load_policy(Path(model_dir) / "model.pt")
+    policy, ck = load_policy(Path(model_dir) / checkpoint)
     norm = Normalizer(ck["stats"])
     gen = torch.Generator().manual_seed(seed)
     size = ep.rgb.shape[0]
@@ -62,18 +67,28 @@ def _closed_loop_one(job: tuple) -> tuple[str, str, bool]:
     return label, ep.task, ok
 
 
-def predict_all(model_dir: Path, data: Path, names: list[str], steps: int | None, seed: int) -> tuple[str, np.ndarray]:
-    """(label, predicted traj3d (E, N, 3)) of a model for the named episodes."""
-    policy, ck = load_policy(model_dir / "model.pt")
-    steps = steps or DEFAULT_STEPS[policy.kind]
+def steps_for(family: str, fm_steps: list[int], dp_steps: list[int]) -> list[int]:
+    return {"fm": fm_steps, "ddpm": dp_steps}.get(family, [1])
+
+
+def label_of(model_dir: Path, method: str, family: str, steps: int) -> str:
+    return model_dir.name if family == "mse" else f"{model_dir.name}/{method}-{steps}"
+
+
+def predict_all(model_dir: Path, checkpoint: str, data: Path, names: list[str], fm_steps: list[int],
+                dp_steps: list[int], seed: int) -> dict[str, np.ndarray]:
+    """label -> predicted traj3d (E, N, 3) of a model for the named episodes, for each of its step counts."""
+    policy, ck = load_policy(model_dir / checkpoint)
     norm = Normalizer(ck["stats"])
     with h5py.File(data, "r") as f:
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
                                                         policy.cfg.use_depth)) for n in names])
-    gen = torch.Generator().manual_seed(seed)
-    pred = norm.unnormalize(policy.predict(obs, steps, None, gen))
-    label = f"{model_dir.name}/{policy.default_method}-{steps}" if policy.kind != "mse" else model_dir.name
-    return label, pred[..., 2:].numpy()
+    out = {}
+    for steps in steps_for(policy.family, fm_steps, dp_steps):
+        gen = torch.Generator().manual_seed(seed)
+        pred = norm.unnormalize(policy.predict(obs, steps, None, gen))
+        out[label_of(model_dir, policy.default_method, policy.family, steps)] = pred[..., 2:].numpy()
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,15 +100,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--models", nargs="*", type=Path, default=[], help="model folders (holding model.pt)")
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
     p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
-    p.add_argument("--steps", type=int, help="sampling steps for every generative model (default: FM 1, DP 16)")
+    p.add_argument("--fm-steps", type=int, nargs="+", default=[1, 16], help="Euler steps of flow-matching models")
+    p.add_argument("--dp-steps", type=int, nargs="+", default=[16], help="DDPM steps of diffusion models")
+    p.add_argument("--checkpoint", choices=sorted(CHECKPOINTS), default="best",
+                   help="best: the epoch with the lowest validation px (default); last: the final epoch")
     p.add_argument("--max-episodes", type=int, help="replay at most this many test episodes")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--closed-loop", type=int, metavar="TA", default=0,
                    help="closed loop: re-plan from a new camera image every TA waypoints (0: open loop, default)")
-    p.add_argument("--metrics", type=Path, default=Path("metrics/replay.json"))
+    p.add_argument("--metrics", type=Path, default=Path("metrics/replay.json"), help="overall success per policy")
+    p.add_argument("--details", type=Path, default=Path("metrics/replay_details.json"), help="success per task")
     p.add_argument("--table", type=Path, default=Path("reports/table2.md"))
     args = p.parse_args(argv)
+    if min(args.fm_steps + args.dp_steps) < 1:
+        raise AdlError("--fm-steps and --dp-steps must be >= 1")
+    checkpoint = CHECKPOINTS[args.checkpoint]
     split = load_split(args.split or args.data.with_name("split.json"))
     names = split["test"][: args.max_episodes] if args.max_episodes else split["test"]
     if not names:
@@ -112,18 +134,17 @@ def main(argv: list[str] | None = None) -> int:
         worker = _closed_loop_one
         jobs = []
         for d in args.models:
-            kind = load_policy(d / "model.pt")[0].kind
-            steps = args.steps or DEFAULT_STEPS[kind]
-            label = f"{d.name}/closed-loop-{args.closed_loop}"
-            jobs += [(label, str(d), ep, steps, args.closed_loop, args.seed) for ep in eps]
+            policy = load_policy(d / checkpoint)[0]
+            for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
+                label = f"{label_of(d, policy.default_method, policy.family, steps)}/closed-loop-{args.closed_loop}"
+                jobs += [(label, str(d), checkpoint, ep, steps, args.closed_loop, args.seed) for ep in eps]
         if not jobs:
             raise AdlError("--closed-loop needs --models")
     else:
         worker = _replay_one
         trajs = {"demo": np.stack([ep.traj3d for ep in eps])}
         for d in args.models:
-            label, pred = predict_all(d, args.data, names, args.steps, args.seed)
-            trajs[label] = pred
+            trajs.update(predict_all(d, checkpoint, args.data, names, args.fm_steps, args.dp_steps, args.seed))
         jobs = [(label, ep.name, ep.task, ep.object_names, ep.objects, traj[i], ep.duration_s)
                 for label, traj in trajs.items() for i, ep in enumerate(eps)]
     wins: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
@@ -136,14 +157,17 @@ def main(argv: list[str] | None = None) -> int:
         every = [o for v in per.values() for o in v]
         result[label] = {"overall": float(np.mean(every)), "n": len(every),
                          "per_task": {t: float(np.mean(v)) for t, v in sorted(per.items())}}
-    write_json_atomic(args.metrics, {"episodes": len(eps), "success": result})
+    write_json_atomic(args.details, {"episodes": len(eps), "checkpoint": args.checkpoint, "success": result})
+    write_json_atomic(args.metrics, {"episodes": len(eps), "checkpoint": args.checkpoint,
+                                     "success": {label: round(r["overall"], 4) for label, r in result.items()}})
     tasks = sorted({ep.task for ep in eps})
     lines = ["| policy | overall | " + " | ".join(tasks) + " |", "| --- | ---: |" + " ---: |" * len(tasks)]
     for label, r in result.items():
         cells = " | ".join(f"{100 * r['per_task'].get(t, float('nan')):.0f}" for t in tasks)
         lines.append(f"| {label} | {100 * r['overall']:.0f} | {cells} |")
     mode = f"closed-loop (re-plan every {args.closed_loop} waypoints)" if args.closed_loop else "open-loop"
-    title = f"# Success rate (%) of {mode} execution in MuJoCo, test split\n\n"
+    title = (f"# Success rate (%) of {mode} execution in MuJoCo, test split, {args.checkpoint} checkpoints\n\n"
+             "Success: the task's predicate, with any contact force on the manikin above 20 N a failure.\n\n")
     write_text_atomic(args.table, title + "\n".join(lines) + "\n")
     for label, r in result.items():
         print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} episodes")

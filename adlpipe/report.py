@@ -1,68 +1,200 @@
-"""Summarise evaluation and replay into one markdown report, with the paper's comparisons spelled out.
+"""Summarise evaluation and replay into one markdown report: the paper's claims, each supported or not on this data,
+and the figures as PNG beside it (no CDN needed to see them).
 
-    python -m adlpipe.report --eval metrics/eval.json --replay metrics/replay.json -o reports/report.md
+    python -m adlpipe.report --eval metrics/eval_details.json --replay metrics/replay_details.json -o reports/report.md
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
+import math
 import sys
 from pathlib import Path
 
-from .atomic import write_text_atomic
+from .atomic import atomic_path, write_text_atomic
 from .errors import AdlError, run_cli
+
+FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
+AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px
 
 
 def _load(path: Path) -> dict:
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise AdlError(f"{path}: cannot read metrics ({exc})") from exc
+    if not isinstance(data, dict):
+        raise AdlError(f"{path}: not a metrics file (expected a JSON object)")
+    return data
 
 
-def _row(models: dict, model: str, method: str, steps: int) -> dict | None:
-    return models.get(model, {}).get(f"{method}/{steps}")
+def _row(ev: dict, model: str, method: str, steps: int, checkpoint: str = "best") -> dict | None:
+    return ev.get("models", {}).get(model, {}).get(checkpoint, {}).get(f"{method}/{steps}")
 
 
-def comparisons(ev: dict) -> list[str]:
-    """The paper's claims as measured here: FM-1 ~ DP-16 << BC in error, FM-1 << DP-16 in time, and FM vs DP at
-    equal steps."""
-    m = ev["models"]
-    fm1 = _row(m, "fm_cnn", "euler", 1)
-    bc = _row(m, "bc_transformer", "direct", 1)
+def _converged(ev: dict, *models: str) -> list[str]:
+    """The models among `models` not marked converged by training."""
+    return [m for m in models if not ev.get("training", {}).get(m, {}).get("converged")]
+
+
+def _verdict(holds: bool, not_converged: list[str]) -> str:
+    if not_converged:
+        measured = "holds" if holds else "fails"
+        return f"**not a finding** ({', '.join(not_converged)} not converged; measured: {measured})"
+    return "**supported**" if holds else "**not supported**"
+
+
+def _stability(ev: dict, model: str) -> float | None:
+    """Mean absolute change of log val px between successive validations over the second half of training."""
+    hist = [r for r in ev.get("training", {}).get(model, {}).get("val_history", []) if r[1]]
+    half = [v for e, v in hist if e > hist[-1][0] / 2] if hist else []
+    if len(half) < 3:
+        return None
+    return sum(abs(math.log(b / a)) for a, b in zip(half[:-1], half[1:], strict=True)) / (len(half) - 1)
+
+
+def claims(ev: dict, rp: dict) -> list[str]:
+    """The paper's four claims, as measured here (best validation checkpoints, default samplers)."""
     out = []
-    for sampler in ("ddpm", "ddim"):
-        dp16 = _row(m, "dp_cnn", sampler, 16)
-        if fm1 and dp16:
-            out.append(f"- FM-CNN 1 step vs DP-CNN 16 {sampler.upper()} steps: {fm1['px']:.2f} vs {dp16['px']:.2f} px "
-                       f"({100 * (fm1['px'] / dp16['px'] - 1):+.0f}%), {fm1['cm']:.2f} vs {dp16['cm']:.2f} cm; "
-                       f"{fm1['ms']:.1f} vs {dp16['ms']:.1f} ms (DP-16 / FM-1 = {dp16['ms'] / fm1['ms']:.1f}x)")
-    if fm1 and bc:
-        mm = (f"; multimodal tasks {fm1['px_multimodal']:.2f} vs {bc['px_multimodal']:.2f} px"
-              if fm1.get("px_multimodal") is not None and bc.get("px_multimodal") is not None else "")
-        out.append(f"- FM-CNN 1 step vs BC-Transformer: {fm1['px']:.2f} vs {bc['px']:.2f} px{mm}")
-    fm16, dp16 = _row(m, "fm_cnn", "euler", 16), _row(m, "dp_cnn", "ddpm", 16)
-    if fm16 and dp16:  # equal steps: the two generative objectives over the same U-Net
-        vs_bc = f"; BC-Transformer {bc['px']:.2f} px" if bc else ""
-        out.append(f"- 16 steps each, FM-CNN vs DP-CNN (DDPM): {fm16['px']:.2f} vs {dp16['px']:.2f} px "
-                   f"({100 * (fm16['px'] / dp16['px'] - 1):+.0f}%){vs_bc}")
+    fm1, fm16 = _row(ev, "fm_cnn", "euler", 1), _row(ev, "fm_cnn", "euler", 16)
+    dp16 = _row(ev, "dp_cnn", "ddpm", 16)
+    success = rp.get("success", {})
+
+    def sr(label: str) -> str:
+        r = success.get(label)
+        return f"{100 * r['overall']:.0f}%" if r else "-"
+
+    if fm1 and dp16:
+        holds = fm1["px"] <= (1 + AS_ACCURATE) * dp16["px"]
+        out.append(f"- FM-1 about as accurate as DP-16 (within {100 * AS_ACCURATE:.0f}% or better): "
+                   f"{_verdict(holds, _converged(ev, 'fm_cnn', 'dp_cnn'))}. FM-CNN 1 step {fm1['px']:.2f} px "
+                   f"({fm1['px224']:.2f} px at 224) vs DP-CNN 16 DDPM steps {dp16['px']:.2f} px "
+                   f"({dp16['px224']:.2f}); replay {sr('fm_cnn/euler-1')} vs {sr('dp_cnn/ddpm-16')}.")
+        ratio = dp16["ms"] / fm1["ms"]
+        out.append(f"- FM-1 much faster than DP-16 (at least {FAST_RATIO:.0f}x): "
+                   f"{'**supported**' if ratio >= FAST_RATIO else '**not supported**'}. {fm1['ms']:.1f} vs "
+                   f"{dp16['ms']:.1f} ms per sample, batch 1, encoder included ({ratio:.1f}x).")
+    if fm16 and dp16:
+        holds = fm16["px"] <= dp16["px"]
+        out.append(f"- At equal steps (16), FM-CNN vs DP-CNN: {_verdict(holds, _converged(ev, 'fm_cnn', 'dp_cnn'))} "
+                   f"that FM is at least as accurate: {fm16['px']:.2f} vs {dp16['px']:.2f} px.")
+    for fm, bc, net in (("fm_cnn", "bc_cnn", "U-Net"), ("fm_transformer", "bc_transformer", "transformer")):
+        f, b = _row(ev, fm, "euler", 1), _row(ev, bc, "direct", 1)
+        if f and b:
+            holds = f["px"] < b["px"]
+            mm = (f"; multimodal tasks {f['px_multimodal']:.2f} vs {b['px_multimodal']:.2f} px"
+                  if f.get("px_multimodal") is not None and b.get("px_multimodal") is not None else "")
+            out.append(f"- FM better than BC ({net} for both, only the objective differs): "
+                       f"{_verdict(holds, _converged(ev, fm, bc))}. 1 step {f['px']:.2f} vs {b['px']:.2f} px{mm}; "
+                       f"replay {sr(f'{fm}/euler-1')} (16 steps: {sr(f'{fm}/euler-16')}) vs {sr(bc)}.")
+    s_fm, s_dp = _stability(ev, "fm_cnn"), _stability(ev, "dp_cnn")
+    if s_fm is not None and s_dp is not None:
+        out.append(f"- FM more stable in training than DP: {'**supported**' if s_fm < s_dp else '**not supported**'}"
+                   f". Mean change of log val px between validations over the second half of training: FM-CNN "
+                   f"{s_fm:.3f}, DP-CNN {s_dp:.3f} (lower is steadier).")
     return out
+
+
+def convergence_lines(ev: dict) -> list[str]:
+    lines = ["| model | optimiser steps | val px best (epoch) | val px last | converged |",
+             "| --- | ---: | ---: | ---: | --- |"]
+    for model, t in ev.get("training", {}).items():
+        if t.get("val_px_best") is None:
+            continue
+        lines.append(f"| {model} | {t.get('optimizer_steps', '?')} | {t['val_px_best']:.2f} ({t.get('best_epoch')}) | "
+                     f"{t['val_px_last']:.2f} | {'yes' if t.get('converged') else '**no**'} |")
+    return lines
+
+
+def _read_log(path: Path) -> dict[str, list[float]]:
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    cols: dict[str, list[float]] = {}
+    for r in rows:
+        for k, v in r.items():
+            cols.setdefault(k, []).append(float(v) if v not in ("", None, "None") else math.nan)
+    return cols
+
+
+def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> list[Path]:
+    """The seed's Fig. 2 (train/test loss FM vs DP), val px vs epoch, px and ms vs steps, as PNG files."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    made = []
+
+    def save(fig, name: str) -> None:  # noqa: ANN001
+        path = out_dir / name
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        made.append(path)
+
+    read = {m: _read_log(p) for m, p in logs.items() if p.exists()}
+    if read:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for m in ("fm_cnn", "dp_cnn"):
+            if m in read:
+                ax.plot(read[m]["epoch"], read[m]["train_loss"], label=f"{m} train")
+                ax.plot(read[m]["epoch"], read[m]["test_loss"], "--", label=f"{m} test")
+        ax.set(xlabel="epoch", ylabel="loss (own objective)", yscale="log", title="Train and test loss, FM vs DP")
+        ax.legend()
+        save(fig, "loss_fm_vs_dp.png")
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for m, cols in read.items():
+            pts = [(e, v) for e, v in zip(cols["epoch"], cols.get("val_px", []), strict=False) if not math.isnan(v)]
+            if pts:
+                ax.plot(*zip(*pts, strict=True), marker=".", label=m)
+        ax.set(xlabel="epoch", ylabel="val px (default sampler)", yscale="log", title="Validation error vs epoch")
+        ax.legend()
+        save(fig, "val_px_vs_epoch.png")
+    for key, ylabel, name in (("px", "px (test, best checkpoint)", "px_vs_steps.png"),
+                              ("ms", "ms per sample, batch 1", "ms_vs_steps.png")):
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for model, by_ck in ev.get("models", {}).items():
+            series: dict[str, list] = {}
+            for r in by_ck.get("best", {}).values():
+                series.setdefault(r["method"], []).append((r["steps"], r[key]))
+            for method, pts in series.items():
+                pts.sort()
+                if len(pts) == 1:
+                    ax.axhline(pts[0][1], ls=":", label=f"{model}")
+                else:
+                    ax.plot(*zip(*pts, strict=True), marker="o", label=f"{model} {method}")
+        ax.set(xlabel="sampling steps", ylabel=ylabel, xscale="log", yscale="log", title=f"{key} vs steps")
+        ax.legend(fontsize=7)
+        save(fig, name)
+    return made
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m adlpipe.report", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--eval", type=Path, default=Path("metrics/eval.json"))
-    p.add_argument("--replay", type=Path, default=Path("metrics/replay.json"))
+    p.add_argument("--eval", type=Path, default=Path("metrics/eval_details.json"))
+    p.add_argument("--replay", type=Path, default=Path("metrics/replay_details.json"))
+    p.add_argument("--train-logs", type=Path, default=Path("metrics/train"), help="folder of <model>.csv logs")
     p.add_argument("--table1", type=Path, default=Path("reports/table1.md"))
     p.add_argument("--table2", type=Path, default=Path("reports/table2.md"))
     p.add_argument("-o", "--output", type=Path, default=Path("reports/report.md"))
     args = p.parse_args(argv)
     ev, rp = _load(args.eval), _load(args.replay)
-    compared = comparisons(ev)
-    parts = ["# adlpipe report", "", f"Test episodes: {ev['n_test']} (error), {rp['episodes']} (replay).", "",
-             "## Comparisons", "", *compared, ""]
+    if "models" not in ev or "success" not in rp:
+        raise AdlError(f"{args.eval} / {args.replay}: not evaluate/replay detail files (no 'models' / 'success')")
+    compared = claims(ev, rp)
+    logs = {m: args.train_logs / f"{m}.csv" for m in ev["models"]}
+    figs = figures(ev, logs, args.output.parent / "figures")
+    parts = ["# adlpipe report", "",
+             f"Test episodes: {ev['n_test']} (error), {rp['episodes']} (replay, {rp.get('checkpoint', 'best')} "
+             "checkpoints). Figures of the best validation checkpoints with each model's default sampler.", "",
+             "## The paper's claims on this data", "", *compared, "",
+             "## Convergence (same optimiser steps for every model)", "", *convergence_lines(ev), "",
+             "A model is converged when its best val px fell by at most 2 % over the last fifth of training; a claim "
+             "involving a model that is not is never stated as a finding.", "",
+             "## Figures", "", *[f"![{f.stem}](figures/{f.name})" for f in figs], ""]
     for t in (args.table1, args.table2):
         if t.exists():
             parts += [t.read_text().replace("# ", "## ", 1), ""]

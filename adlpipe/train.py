@@ -207,6 +207,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
              "train_loss": history[-1]["train_loss"], "test_loss": history[-1]["test_loss"],
              "val_px_last": vals[-1]["val_px"] if vals else None, "val_px_best": best["val_px"] if best else None,
              "best_epoch": best["epoch"] if best else epochs, "converged": converged(history),
+             "val_history": [[r["epoch"], r["val_px"]] for r in vals],
              "seconds": sum(r["seconds"] for r in history)}
     write_json_atomic(out / "metrics.json", final)
     return final

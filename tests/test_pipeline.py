@@ -17,7 +17,7 @@ import pytest
 import yaml
 from conftest import REPO, run_module
 
-MODELS = ["fm_cnn", "fm_transformer", "dp_cnn", "bc_transformer"]
+MODELS = ["fm_cnn", "fm_cnn_velocity", "fm_transformer", "dp_cnn", "bc_cnn", "bc_transformer"]
 
 
 def dvc(cwd: Path, *args: str) -> subprocess.CompletedProcess:
@@ -53,22 +53,39 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert len(bags) == 20
     split = json.loads((pipeline / "data" / "split.json").read_text())
     assert len(split["test"]) == 10 and len(split["train"]) == 10  # one test episode per task
-    ev = json.loads((pipeline / "metrics" / "eval.json").read_text())
+    headline = json.loads((pipeline / "metrics" / "eval.json").read_text())
+    assert set(headline) == {*MODELS, "n_test"}
+    n_values = sum(len(v) if isinstance(v, dict) else 1 for v in headline.values())
+    assert n_values <= 40, n_values  # dvc metrics show stays readable
+    assert headline["dp_cnn"]["steps"] == 16 and headline["fm_cnn"]["steps"] == 1
+    ev = json.loads((pipeline / "metrics" / "eval_details.json").read_text())
     assert sorted(ev["models"]) == sorted(MODELS)
     fm = ev["models"]["fm_cnn"]
-    assert sorted(fm) == ["euler/1", "euler/16"] and fm["euler/16"]["evaluations"] == 16
-    assert sorted(ev["models"]["dp_cnn"]) == ["ddim/1", "ddim/16", "ddpm/1", "ddpm/16"]
+    assert sorted(fm) == ["best", "last"]
+    assert sorted(fm["best"]) == ["euler/1", "euler/16"] and fm["best"]["euler/16"]["evaluations"] == 16
+    row = fm["last"]["euler/1"]
+    assert row["image_px"] == 32 and row["px224"] == pytest.approx(row["px"] * 224 / 32)
+    assert sorted(ev["models"]["dp_cnn"]["last"]) == ["ddim/1", "ddim/16", "ddpm/1", "ddpm/16", "ddpm_trailing/1",
+                                                      "ddpm_trailing/16"]
     for model in MODELS:
         hist = (pipeline / "metrics" / "train" / f"{model}.csv").read_text().splitlines()
-        assert hist[0].startswith("epoch,step,train_loss,test_loss") and len(hist) == 3
+        assert hist[0].startswith("epoch,step,train_loss,test_loss,val_px") and len(hist) == 3
+        assert ev["training"][model]["optimizer_steps"] == ev["training"]["fm_cnn"]["optimizer_steps"]
     report = (pipeline / "reports" / "report.md").read_text()
-    assert "## Success rate" in report and "FM-CNN 1 step vs DP-CNN 16 DDPM steps" in report
-    assert "16 steps each, FM-CNN vs DP-CNN (DDPM)" in report
+    assert "## Success rate" in report and "FM-1 about as accurate as DP-16" in report
+    assert "FM better than BC (U-Net for both" in report and "FM-1 much faster than DP-16" in report
+    assert "px: pixels of the 32 px stored image" in report
+    for fig in ("loss_fm_vs_dp", "val_px_vs_epoch", "px_vs_steps", "ms_vs_steps"):
+        png = pipeline / "reports" / "figures" / f"{fig}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"(figures/{fig}.png)" in report
 
 
 def test_the_demonstrations_replay_successfully(pipeline: Path) -> None:
     """The recorded trajectories, resampled to 32 waypoints and executed open loop, solve every task."""
-    rp = json.loads((pipeline / "metrics" / "replay.json").read_text())
+    rp = json.loads((pipeline / "metrics" / "replay_details.json").read_text())
+    assert json.loads((pipeline / "metrics" / "replay.json").read_text())["success"]["demo"] == rp["success"]["demo"][
+        "overall"]
+    assert {"fm_cnn/euler-1", "fm_cnn/euler-16", "dp_cnn/ddpm-16", "bc_cnn", "bc_transformer"} <= set(rp["success"])
     demo = rp["success"]["demo"]
     assert demo["n"] == 10 and len(demo["per_task"]) == 10
     assert demo["overall"] >= 0.9, demo
@@ -125,9 +142,10 @@ def test_inspect_writes_a_readable_rerun_recording(pipeline: Path, tmp_path: Pat
 def test_closed_loop_replay_replans_from_new_images(pipeline: Path, tmp_path: Path) -> None:
     metrics = tmp_path / "cl.json"
     proc = run_module("replay", "--models", pipeline / "models" / "fm_cnn", "--data", pipeline / "data" / "adl.h5",
-                      "--closed-loop", "8", "--max-episodes", "3", "--workers", "1", "--metrics", metrics,
-                      "--table", tmp_path / "cl.md", check=True)
-    assert "fm_cnn/closed-loop-8: success" in proc.stdout
-    result = json.loads(metrics.read_text())["success"]
-    assert list(result) == ["fm_cnn/closed-loop-8"] and result["fm_cnn/closed-loop-8"]["n"] == 3
+                      "--closed-loop", "8", "--max-episodes", "3", "--workers", "1", "--fm-steps", "1",
+                      "--metrics", metrics, "--details", tmp_path / "cl_details.json", "--table", tmp_path / "cl.md",
+                      check=True)
+    assert "fm_cnn/euler-1/closed-loop-8: success" in proc.stdout
+    result = json.loads((tmp_path / "cl_details.json").read_text())["success"]
+    assert list(result) == ["fm_cnn/euler-1/closed-loop-8"] and result["fm_cnn/euler-1/closed-loop-8"]["n"] == 3
     assert "closed-loop (re-plan every 8 waypoints)" in (tmp_path / "cl.md").read_text()
