@@ -6,6 +6,7 @@ replaces the target only when writing succeeded; a failure or a kill leaves the 
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 from collections.abc import Iterator
@@ -27,6 +28,14 @@ def atomic_path(path: Path | str) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.errno == errno.ENOSPC or not exc.filename:  # name the output the user asked for, not the temp
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+        raise
+    except RuntimeError as exc:  # HDF5 and torch report a full disk as RuntimeError text
+        if "No space left" in str(exc) or "failed writing" in str(exc):
+            raise OSError(errno.ENOSPC, "No space left on device", str(path)) from exc
+        raise
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -38,4 +47,48 @@ def write_text_atomic(path: Path | str, text: str) -> None:
 
 
 def write_json_atomic(path: Path | str, obj: object) -> None:
-    write_text_atomic(path, json.dumps(obj, indent=1, sort_keys=True) + "\n")
+    write_text_atomic(path, json_text(obj))
+
+
+def check_outputs(*paths: Path | str) -> None:
+    """Fail before the work, not after it: every output must be a file path whose folder can be written."""
+    for path in map(Path, paths):
+        if path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, "is a folder; give a file path", str(path))
+        parent = path.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, f"{parent} is a file, not a folder", str(path))
+        if not os.access(parent, os.W_OK):
+            err = errno.EROFS if os.statvfs(parent).f_flag & os.ST_RDONLY else errno.EACCES
+            raise OSError(err, os.strerror(err), str(path))
+
+
+def write_all_atomic(texts: dict[Path, str]) -> None:
+    """A stage's outputs all or none: every file is written to its temp first; only when all are written do they
+    replace their targets (a folder in the way or a full disk leaves every old output as it was)."""
+    for path in texts:
+        if Path(path).is_dir():
+            raise IsADirectoryError(errno.EISDIR, "is a folder, not a file", str(path))
+    done: list[tuple[Path, Path]] = []
+    try:
+        for path, text in texts.items():
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = temp_name(path)
+            done.append((tmp, path))
+            try:
+                tmp.write_text(text)
+            except OSError as exc:
+                raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+        for tmp, path in done:
+            os.replace(tmp, path)
+    finally:
+        for tmp, _ in done:
+            if tmp.exists():
+                tmp.unlink()
+
+
+def json_text(obj: object) -> str:
+    return json.dumps(obj, indent=1, sort_keys=True) + "\n"

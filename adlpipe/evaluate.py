@@ -13,8 +13,8 @@ few values per model), every figure with per-task detail (--details), a CSV of e
 
 from __future__ import annotations
 
-import argparse
 import csv
+import io
 import json
 import statistics
 import sys
@@ -25,7 +25,8 @@ import h5py
 import torch
 
 from . import schema
-from .atomic import atomic_path, write_json_atomic, write_text_atomic
+from .atomic import check_outputs, json_text, write_all_atomic
+from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
 from .data import Normalizer, TrajectoryDataset
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
@@ -153,7 +154,7 @@ def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -
     return out
 
 
-def write_steps_csv(path: Path, results: dict[str, dict], steps_list: list[int]) -> None:
+def steps_csv(results: dict[str, dict], steps_list: list[int]) -> str:
     """Wide CSV for `dvc plots`: one row per step count, columns <model>_<sampler>_{px,cm,ms}. A regressor does
     not depend on steps: its single figure is repeated as a flat reference line."""
     series: dict[str, dict[int, dict]] = {}
@@ -161,15 +162,16 @@ def write_steps_csv(path: Path, results: dict[str, dict], steps_list: list[int])
         for r in by_ck["last"].values():
             series.setdefault(f"{model}_{r['method']}", {})[r["steps"]] = r
     cols = [f"{name}_{m}" for name in series for m in ("px", "cm", "ms")]
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["steps", *cols])
-        for k in steps_list:
-            row = [k]
-            for by_steps in series.values():
-                r = by_steps.get(k) or by_steps[min(by_steps)]
-                row += [f"{r['px']:.4f}", f"{r['cm']:.4f}", f"{r['ms']:.3f}"]
-            w.writerow(row)
+    f = io.StringIO()
+    w = csv.writer(f, lineterminator="\n")
+    w.writerow(["steps", *cols])
+    for k in steps_list:
+        row = [k]
+        for by_steps in series.values():
+            r = by_steps.get(k) or by_steps[min(by_steps)]
+            row += [f"{r['px']:.4f}", f"{r['cm']:.4f}", f"{r['ms']:.3f}"]
+        w.writerow(row)
+    return f.getvalue()
 
 
 def _training_metrics(model_dir: Path) -> dict:
@@ -181,19 +183,18 @@ def _training_metrics(model_dir: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m adlpipe.evaluate", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser("python -m adlpipe.evaluate", __doc__)
     p.add_argument("--models", nargs="+", type=Path, required=True, help="model folders (holding model.pt)")
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
     p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
-    p.add_argument("--steps", nargs="+", type=int, default=STEPS)
+    p.add_argument("--steps", nargs="+", type=int_range(1, 100), default=STEPS)
     p.add_argument("--fm-methods", nargs="+", default=["euler"], help="euler, midpoint, rk4")
     p.add_argument("--dp-methods", nargs="+", default=["ddpm", "ddim", "ddpm_trailing"],
                    help="ddpm, ddim (leading spacing, as Diffusion Policy), ddpm_trailing, ddim_trailing")
-    p.add_argument("--best-of", type=int, default=8, help="K samples for the best-of-K error")
-    p.add_argument("--repeats", type=int, default=20, help="timed runs per latency figure (median)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--best-of", type=POSITIVE, default=8, help="K samples for the best-of-K error")
+    p.add_argument("--repeats", type=POSITIVE, default=20, help="timed runs per latency figure (median)")
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--threads", type=NON_NEGATIVE, default=0)
     p.add_argument("--metrics", type=Path, default=Path("metrics/eval.json"), help="headline figures")
     p.add_argument("--details", type=Path, default=Path("metrics/eval_details.json"),
                    help="every figure, per checkpoint, sampler, step count and task")
@@ -202,14 +203,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    check_outputs(args.metrics, args.details, args.plots, args.table)
     split = load_split(args.split or args.data.with_name("split.json"))
     if not split["test"]:
         raise AdlError("the test split is empty: record more episodes per task")
-    with h5py.File(args.data, "r") as f:
-        schema.check_file(f, str(args.data))
-        missing = set(split["test"]) - set(schema.episode_names(f))
-    if missing:
-        raise AdlError(f"{args.data}: {len(missing)} test episode(s) of the split are not in the dataset")
+    with schema.open_dataset(args.data, split["test"]):
+        pass
     results: dict[str, dict] = {}
     training: dict[str, dict] = {}
     methods = {"fm": args.fm_methods, "ddpm": args.dp_methods}
@@ -226,12 +225,13 @@ def main(argv: list[str] | None = None) -> int:
         top = min(best.values(), key=lambda r: r["px"])
         print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
               f"{top['steps']} steps){'' if training[d.name].get('converged') else ', not converged'}")
-    write_json_atomic(args.details, {"n_test": len(split["test"]), "best_of": args.best_of, "training": training,
-                                     "models": results})
-    write_json_atomic(args.metrics, headline(results, training, len(split["test"])))
-    write_steps_csv(args.plots, results, args.steps)
     title = "# Trajectory error and inference time on the test split\n\n"
-    write_text_atomic(args.table, title + table1(results, args.best_of, training))
+    write_all_atomic({
+        args.details: json_text({"n_test": len(split["test"]), "best_of": args.best_of, "training": training,
+                                 "models": results}),
+        args.metrics: json_text(headline(results, training, len(split["test"]))),
+        args.plots: steps_csv(results, args.steps),
+        args.table: title + table1(results, args.best_of, training)})
     print(f"wrote {args.metrics}, {args.details}, {args.plots}, {args.table}")
     return 0
 

@@ -18,6 +18,8 @@ import argparse
 import hashlib
 import os
 import shutil
+import signal
+import stat
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -28,11 +30,13 @@ import numpy as np
 from tqdm import tqdm
 
 from . import schema
-from .atomic import atomic_path
+from .atomic import atomic_path, check_outputs
 from .bags.reader import BagSource
+from .cli import Parser, int_range
 from .errors import AdlError, run_cli
 from .geometry import TfBuffer, matrix_to_quat, pose_matrix, project, resample, scale_intrinsics
 from .images import decode_image, depth_to_metres
+from .lock import exclusive
 from .topics import TopicMap
 
 IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}
@@ -307,10 +311,29 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     return ep, note
 
 
+def check_bag_path(bag: Path) -> None:
+    """Bags are regular files or rosbag2 folders: a FIFO, a device (a link to /dev/zero) or a socket would block or
+    never end."""
+    try:
+        mode = bag.stat().st_mode
+    except FileNotFoundError:
+        return  # the reader says "no such bag" with the formats it knows
+    except OSError as exc:
+        raise AdlError(f"{bag}: cannot read ({exc.strerror})") from None
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise AdlError(f"{bag}: not a regular file or folder (a pipe, device or socket); give a bag file")
+
+
+def _ignore_sigint() -> None:
+    """Pool workers leave Ctrl-C to the parent, which stops them; a worker dying mid-result would hang the pool."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _worker(job: tuple) -> tuple[str, schema.Episode | None, str, str | None]:
     """(bag, episode or None if already ingested, note, error line or None). Runs in a pool process."""
     bag, tm, n, size, task, recover, known = job
     try:
+        check_bag_path(Path(bag))
         sha = sha256_of(Path(bag)) if Path(bag).exists() else None
         if sha is not None and sha in known:
             return bag, None, "already ingested", None
@@ -320,20 +343,21 @@ def _worker(job: tuple) -> tuple[str, schema.Episode | None, str, str | None]:
         return bag, None, "", str(exc)
     except MemoryError:
         return bag, None, "", f"{bag}: out of memory while reading the bag"
+    except Exception as exc:  # noqa: BLE001 - one bag's unforeseen failure must not take the batch down
+        return bag, None, "", f"{bag}: cannot ingest ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m adlpipe.ingest", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser("python -m adlpipe.ingest", __doc__)
     p.add_argument("bags", nargs="+", type=Path, help=".mcap / .bag files, rosbag2 folders or .db3 files")
     p.add_argument("-o", "--output", type=Path, help="HDF5 file to create or extend (required unless --list)")
     p.add_argument("--list", action="store_true",
                    help="print each bag's topics, types, declared and read message counts; write nothing")
     p.add_argument("--config", type=Path, help="topic map YAML (keys of adlpipe.topics.TopicMap)")
-    p.add_argument("--waypoints", type=int, default=32, help="waypoints per trajectory (default 32)")
-    p.add_argument("--size", type=int, default=224, help="stored image width and height (default 224)")
+    p.add_argument("--waypoints", type=int_range(2, 4096), default=32, help="waypoints per trajectory (default 32)")
+    p.add_argument("--size", type=int_range(8, 4096), default=224, help="stored image width and height (default 224)")
     p.add_argument("--task", help="task name for bags without a task topic")
-    p.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1))
+    p.add_argument("--workers", type=int_range(1, 256), default=min(4, os.cpu_count() or 1))
     p.add_argument("--skip-bad", action="store_true",
                    help="write the good bags and report the bad ones (exit 1) instead of writing nothing")
     p.add_argument("--recover", action="store_true",
@@ -341,8 +365,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if not args.list and args.output is None:
         p.error("the following arguments are required: -o/--output")
-    if args.waypoints < 2 or args.size < 16:
-        raise AdlError("--waypoints must be >= 2 and --size >= 16")
     return args
 
 
@@ -375,10 +397,17 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
     jobs = [(str(b), tm, n_waypoints, size, task, recover, known) for b in bags]
     results = []
     if workers > 1 and len(jobs) > 1:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        pool = ProcessPoolExecutor(max_workers=workers, initializer=_ignore_sigint)
+        try:
             it = pool.map(_worker, jobs)
             results = list(tqdm(it, total=len(jobs), desc="ingest", unit="bag", file=sys.stderr,
                                 disable=None if progress else True))
+        except KeyboardInterrupt:
+            for proc in list(getattr(pool, "_processes", {}).values()):  # stop now, not after the running bags
+                proc.terminate()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown()
     else:
         bar = tqdm(jobs, desc="ingest", unit="bag", file=sys.stderr, disable=None if progress else True)
         results = [_worker(j) for j in bar]
@@ -397,6 +426,7 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
     if not new:
         return counts  # nothing to add: the file stays exactly as it was
     remove_stale_temps(output)
+    check_free_space(output, new.values())
     with atomic_path(output) as tmp:
         if output.exists():
             shutil.copy2(output, tmp)
@@ -406,6 +436,19 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
             for ep in new.values():
                 schema.write_episode(f, ep)
     return counts
+
+
+def check_free_space(output: Path, episodes: object) -> None:
+    """Refuse to start writing into a file system that cannot hold the result (HDF5 does not fail cleanly on a full
+    disk): the copy of the old file plus the new episodes uncompressed, an upper bound."""
+    need = output.stat().st_size if output.exists() else 0
+    for ep in episodes:  # type: ignore[attr-defined]
+        need += sum(a.nbytes for a in (ep.rgb, ep.affordance, ep.traj3d, ep.traj2d, ep.ee_pos, ep.joint_pos))
+        need += ep.depth.nbytes if ep.depth is not None else 0
+    free = shutil.disk_usage(output.parent).free
+    if free < need + (1 << 20):
+        raise AdlError(f"no space left on device writing {output} (needs up to {need / 1e6:.1f} MB, "
+                       f"{free / 1e6:.1f} MB free)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -420,9 +463,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  {topic:40s} {msgtype:40s} declared {declared!s:>6} read {n:>6}{flag}")
         return 1 if bad else 0
     tm = TopicMap.load(args.config)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    c = ingest(args.bags, args.output, tm, args.waypoints, args.size, args.task, args.workers, args.skip_bad,
-               args.recover, progress=True)
+    check_outputs(args.output)
+    with exclusive(args.output):
+        c = ingest(args.bags, args.output, tm, args.waypoints, args.size, args.task, args.workers, args.skip_bad,
+                   args.recover, progress=True)
     for note in c["notes"]:
         print(f"note: {note}", file=sys.stderr)
     for err in c["errors"]:

@@ -10,19 +10,18 @@ and predicted 2D trajectories as line strips on the image, the 3D trajectories i
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import cv2
-import h5py
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 import torch
 
 from . import schema
-from .atomic import atomic_path
+from .atomic import atomic_path, check_outputs
+from .cli import NON_NEGATIVE, Parser, int_range
 from .data import Normalizer, observation
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
@@ -76,22 +75,23 @@ def _record(path: Path, episodes: list[schema.Episode], preds: list[np.ndarray],
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m adlpipe.inspect", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser("python -m adlpipe.inspect", __doc__)
     p.add_argument("--model", type=Path, required=True, help="model folder (holding model.pt)")
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
     p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
     p.add_argument("--episodes", nargs="+", default=["0"],
                    help="test-split indices or episode names (default: the first test episode)")
-    p.add_argument("--samples", type=int, default=4, help="predicted samples drawn per episode")
-    p.add_argument("--steps", type=int, default=4)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--samples", type=int_range(1, 1000), default=4, help="predicted samples drawn per episode")
+    p.add_argument("--steps", type=int_range(1, 100), default=4)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--checkpoint", choices=["best", "last"], default="best",
+                   help="best: the lowest validation px (best.pt, default); last: model.pt")
     p.add_argument("-o", "--output", type=Path, default=Path("preds.rrd"))
     args = p.parse_args(argv)
-    policy, ck = load_policy(args.model / "model.pt")
+    check_outputs(args.output)
+    policy, ck = load_policy(args.model / {"best": "best.pt", "last": "model.pt"}[args.checkpoint])
     norm = Normalizer(ck["stats"])
-    with h5py.File(args.data, "r") as f:
-        schema.check_file(f, str(args.data))
+    with schema.open_dataset(args.data) as f:
         all_names = schema.episode_names(f)
         test = load_split(args.split or args.data.with_name("split.json"))["test"] or all_names
         names = []
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
                                                         policy.cfg.use_depth)) for n in names])
     gen = torch.Generator().manual_seed(args.seed)
-    k = 1 if policy.kind == "mse" else max(1, args.samples)
+    k = 1 if policy.family == "mse" else args.samples
     samples = torch.stack([norm.unnormalize(policy.predict(obs, args.steps, None, gen)) for _ in range(k)], dim=1)
     write_recording(args.output, eps, list(samples.numpy()), policy.cfg.model)
     print(f"{args.output}: {len(eps)} episode(s), {k} sample(s) each from {args.model}")

@@ -17,6 +17,7 @@ from tqdm import tqdm
 
 from .bags import messages as M
 from .bags.writer import FORMATS, BagWriter
+from .cli import NON_NEGATIVE, Parser, float_range, int_range
 from .errors import AdlError, run_cli
 from .geometry import matrix_to_quat
 from .topics import TopicMap
@@ -108,9 +109,8 @@ def _record_one(job: tuple) -> tuple[str, int, bool]:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     from .sim.tasks import TASK_NAMES
 
-    p = argparse.ArgumentParser(prog="python -m adlpipe.record", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--episodes", type=int, default=3, help="episodes per task (default 3)")
+    p = Parser("python -m adlpipe.record", __doc__)
+    p.add_argument("--episodes", type=int_range(1, 100_000), default=3, help="episodes per task (default 3)")
     p.add_argument("--out", required=True, type=Path, help="output folder for the bags")
     p.add_argument("--tasks", nargs="+", default=TASK_NAMES, metavar="TASK",
                    help="task names (default: all 10), e.g. 'wipe the nose'")
@@ -119,10 +119,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--image-format", choices=["raw", "jpeg", "png"], default="raw",
                    help="raw: sensor_msgs/Image rgb8 (default); jpeg/png: sensor_msgs/CompressedImage")
     p.add_argument("--depth-format", choices=["32FC1", "16UC1"], default="32FC1")
-    p.add_argument("--size", type=int, default=224, help="camera width and height in pixels (default 224)")
-    p.add_argument("--camera-hz", type=float, default=15.0)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--size", type=int_range(16, 2048), default=224,
+                   help="camera width and height in pixels (default 224)")
+    p.add_argument("--camera-hz", type=float_range(0.1, 120), default=15.0)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--workers", type=int_range(1, 256), default=2)
     args = p.parse_args(argv)
     bad = [t for t in args.tasks if t not in TASK_NAMES]
     if bad:

@@ -15,7 +15,6 @@ scored too, as the reference. Works on bags recorded by adlpipe.record (their fr
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from collections import defaultdict
@@ -28,7 +27,8 @@ import torch
 from tqdm import tqdm
 
 from . import schema
-from .atomic import write_json_atomic, write_text_atomic
+from .atomic import check_outputs, json_text, write_all_atomic
+from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
 from .data import Normalizer, observation, observation_from_arrays
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
@@ -95,19 +95,19 @@ def main(argv: list[str] | None = None) -> int:
     from .sim.tasks import TASKS
     from .sim.world import SCENE_OBJECTS
 
-    p = argparse.ArgumentParser(prog="python -m adlpipe.replay", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser("python -m adlpipe.replay", __doc__)
     p.add_argument("--models", nargs="*", type=Path, default=[], help="model folders (holding model.pt)")
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
     p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
-    p.add_argument("--fm-steps", type=int, nargs="+", default=[1, 16], help="Euler steps of flow-matching models")
-    p.add_argument("--dp-steps", type=int, nargs="+", default=[16], help="DDPM steps of diffusion models")
+    p.add_argument("--fm-steps", type=int_range(1, 100), nargs="+", default=[1, 16],
+                   help="Euler steps of flow-matching models")
+    p.add_argument("--dp-steps", type=int_range(1, 100), nargs="+", default=[16], help="DDPM steps of diffusion models")
     p.add_argument("--checkpoint", choices=sorted(CHECKPOINTS), default="best",
                    help="best: the epoch with the lowest validation px (default); last: the final epoch")
-    p.add_argument("--max-episodes", type=int, help="replay at most this many test episodes")
-    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--closed-loop", type=int, metavar="TA", default=0,
+    p.add_argument("--max-episodes", type=POSITIVE, help="replay at most this many test episodes")
+    p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1))
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--closed-loop", type=NON_NEGATIVE, metavar="TA", default=0,
                    help="closed loop: re-plan from a new camera image every TA waypoints (0: open loop, default)")
     p.add_argument("--metrics", type=Path, default=Path("metrics/replay.json"), help="overall success per policy")
     p.add_argument("--details", type=Path, default=Path("metrics/replay_details.json"), help="success per task")
@@ -116,12 +116,12 @@ def main(argv: list[str] | None = None) -> int:
     if min(args.fm_steps + args.dp_steps) < 1:
         raise AdlError("--fm-steps and --dp-steps must be >= 1")
     checkpoint = CHECKPOINTS[args.checkpoint]
+    check_outputs(args.metrics, args.details, args.table)
     split = load_split(args.split or args.data.with_name("split.json"))
     names = split["test"][: args.max_episodes] if args.max_episodes else split["test"]
     if not names:
         raise AdlError("the test split is empty: nothing to replay")
-    with h5py.File(args.data, "r") as f:
-        schema.check_file(f, str(args.data))
+    with schema.open_dataset(args.data, names) as f:
         eps = [schema.read_episode(f, n) for n in names]
     for ep in eps:
         if ep.task not in TASKS:
@@ -157,9 +157,6 @@ def main(argv: list[str] | None = None) -> int:
         every = [o for v in per.values() for o in v]
         result[label] = {"overall": float(np.mean(every)), "n": len(every),
                          "per_task": {t: float(np.mean(v)) for t, v in sorted(per.items())}}
-    write_json_atomic(args.details, {"episodes": len(eps), "checkpoint": args.checkpoint, "success": result})
-    write_json_atomic(args.metrics, {"episodes": len(eps), "checkpoint": args.checkpoint,
-                                     "success": {label: round(r["overall"], 4) for label, r in result.items()}})
     tasks = sorted({ep.task for ep in eps})
     lines = ["| policy | overall | " + " | ".join(tasks) + " |", "| --- | ---: |" + " ---: |" * len(tasks)]
     for label, r in result.items():
@@ -168,7 +165,11 @@ def main(argv: list[str] | None = None) -> int:
     mode = f"closed-loop (re-plan every {args.closed_loop} waypoints)" if args.closed_loop else "open-loop"
     title = (f"# Success rate (%) of {mode} execution in MuJoCo, test split, {args.checkpoint} checkpoints\n\n"
              "Success: the task's predicate, with any contact force on the manikin above 20 N a failure.\n\n")
-    write_text_atomic(args.table, title + "\n".join(lines) + "\n")
+    write_all_atomic({
+        args.details: json_text({"episodes": len(eps), "checkpoint": args.checkpoint, "success": result}),
+        args.metrics: json_text({"episodes": len(eps), "checkpoint": args.checkpoint,
+                                 "success": {label: round(r["overall"], 4) for label, r in result.items()}}),
+        args.table: title + "\n".join(lines) + "\n"})
     for label, r in result.items():
         print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} episodes")
     return 0

@@ -6,14 +6,14 @@ and the figures as PNG beside it (no CDN needed to see them).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
 import sys
 from pathlib import Path
 
-from .atomic import atomic_path, write_text_atomic
+from .atomic import atomic_path, check_outputs, write_text_atomic
+from .cli import Parser
 from .errors import AdlError, run_cli
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
@@ -172,8 +172,7 @@ def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m adlpipe.report", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser("python -m adlpipe.report", __doc__)
     p.add_argument("--eval", type=Path, default=Path("metrics/eval_details.json"))
     p.add_argument("--replay", type=Path, default=Path("metrics/replay_details.json"))
     p.add_argument("--train-logs", type=Path, default=Path("metrics/train"), help="folder of <model>.csv logs")
@@ -181,6 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--table2", type=Path, default=Path("reports/table2.md"))
     p.add_argument("-o", "--output", type=Path, default=Path("reports/report.md"))
     args = p.parse_args(argv)
+    check_outputs(args.output)
     ev, rp = _load(args.eval), _load(args.replay)
     if "models" not in ev or "success" not in rp:
         raise AdlError(f"{args.eval} / {args.replay}: not evaluate/replay detail files (no 'models' / 'success')")

@@ -19,7 +19,11 @@
 from __future__ import annotations
 
 import re
+import stat
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -86,6 +90,62 @@ def check_file(f: h5py.File, path: str, n_waypoints: int | None = None, image_si
     for key, want in (("n_waypoints", n_waypoints), ("image_size", image_size)):
         if want is not None and int(f.attrs[key]) != want:
             raise AdlError(f"{path}: file has {key}={int(f.attrs[key])}, asked for {want}; use a new output file")
+
+
+REQUIRED = {"rgb": 3, "affordance": 2, "traj3d": 2, "traj2d": 2, "K": 2, "T_base_camera": 2, "objects": 2}
+
+
+@contextmanager
+def open_dataset(path: Path | str, names: list[str] | None = None) -> Iterator[h5py.File]:
+    """Open an adlpipe dataset for reading, or fail with one line saying what is wrong with it: missing, a folder,
+    empty, not HDF5, unreadable, another format, episodes missing, malformed or holding non-finite trajectories.
+    `names`: the episodes the caller will read (all of them if None)."""
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise AdlError(f"{path}: no such dataset; run python -m adlpipe.ingest first") from None
+    except OSError as exc:
+        raise AdlError(f"{path}: cannot open dataset ({exc.strerror})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise AdlError(f"{path}: is a folder, not an HDF5 dataset file")
+    if not stat.S_ISREG(st.st_mode):
+        raise AdlError(f"{path}: not a regular file")
+    if st.st_size == 0:
+        raise AdlError(f"{path}: empty file, not an HDF5 dataset")
+    try:
+        f = h5py.File(path, "r")
+    except PermissionError:
+        raise AdlError(f"{path}: permission denied") from None
+    except OSError as exc:
+        raise AdlError(f"{path}: not an HDF5 file ({' '.join(str(exc).split())[:120]})") from None
+    with f:
+        check_file(f, str(path))
+        present = set(f[EPISODES].keys())
+        wanted = episode_names(f) if names is None else list(names)
+        missing = [n for n in wanted if n not in present]
+        if missing:
+            raise AdlError(f"{path}: {len(missing)} episode(s) named by the split are not in the dataset "
+                           f"(e.g. {missing[0]!r}); re-run python -m adlpipe.split on this file")
+        for n in wanted:
+            check_episode(f[EPISODES][n], f"{path}:{n}")
+        yield f
+
+
+def check_episode(g: h5py.Group, where: str) -> None:
+    """The datasets every reader needs, with the right number of axes and finite trajectories."""
+    if not isinstance(g, h5py.Group):
+        raise AdlError(f"{where}: not an episode group")
+    for key, ndim in REQUIRED.items():
+        if key not in g or not isinstance(g[key], h5py.Dataset) or g[key].ndim != ndim:
+            raise AdlError(f"{where}: episode lacks a {ndim}-D '{key}' dataset")
+    if "task" not in g.attrs:
+        raise AdlError(f"{where}: episode has no 'task' attribute")
+    t3, t2 = g["traj3d"], g["traj2d"]
+    if t3.shape[1:] != (3,) or t2.shape != (t3.shape[0], 2):
+        raise AdlError(f"{where}: traj3d/traj2d shapes {t3.shape}/{t2.shape}, expected (N, 3)/(N, 2)")
+    if not (np.isfinite(t3[()]).all() and np.isfinite(t2[()]).all()):
+        raise AdlError(f"{where}: non-finite values (NaN or inf) in the stored trajectory; re-ingest the bag")
 
 
 def write_episode(f: h5py.File, ep: Episode) -> None:

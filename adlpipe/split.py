@@ -5,17 +5,16 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from collections import defaultdict
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from . import schema
-from .atomic import write_json_atomic
+from .atomic import check_outputs, write_json_atomic
+from .cli import NON_NEGATIVE, Parser, float_range
 from .errors import AdlError, run_cli
 
 
@@ -42,30 +41,32 @@ def make_split(tasks: dict[str, str], test_fraction: float, seed: int) -> dict[s
 def load_split(path: Path) -> dict:
     try:
         split = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise AdlError(f"{path}: cannot read split ({exc}); run python -m adlpipe.split first") from exc
     if not isinstance(split, dict) or not {"train", "test"} <= set(split):
         raise AdlError(f"{path}: not a split file (needs 'train' and 'test' lists)")
+    for part in ("train", "test"):
+        names = split[part]
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise AdlError(f"{path}: '{part}' must be a list of episode names (strings)")
+    if set(split["train"]) & set(split["test"]):
+        raise AdlError(f"{path}: episodes in both 'train' and 'test'")
     return split
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m adlpipe.split", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser("python -m adlpipe.split", __doc__)
     p.add_argument("data", type=Path, help="HDF5 dataset from adlpipe.ingest")
     p.add_argument("-o", "--output", type=Path, help="split JSON (default: split.json beside the data)")
-    p.add_argument("--test-fraction", type=float, default=0.2)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--test-fraction", type=float_range(0, 1, lo_open=True), default=0.2)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     args = p.parse_args(argv)
     if not 0 < args.test_fraction < 1:
         raise AdlError("--test-fraction must be between 0 and 1")
     out = args.output or args.data.with_name("split.json")
-    try:
-        with h5py.File(args.data, "r") as f:
-            schema.check_file(f, str(args.data))
-            tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in schema.episode_names(f)}
-    except OSError as exc:
-        raise AdlError(f"{args.data}: cannot open dataset ({exc})") from exc
+    check_outputs(out)
+    with schema.open_dataset(args.data) as f:
+        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in schema.episode_names(f)}
     if not tasks:
         raise AdlError(f"{args.data}: dataset has no episodes")
     split = make_split(tasks, args.test_fraction, args.seed)

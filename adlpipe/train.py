@@ -16,7 +16,6 @@ plain values: they load with torch.load(weights_only=True).
 
 from __future__ import annotations
 
-import argparse
 import copy
 import csv
 import math
@@ -31,8 +30,10 @@ from tqdm import tqdm
 
 from . import schema
 from .atomic import atomic_path, write_json_atomic
+from .cli import NON_NEGATIVE, POSITIVE, Parser, float_range, int_range
 from .data import Normalizer, TrajectoryDataset, compute_stats
 from .errors import AdlError, run_cli
+from .lock import exclusive
 from .policy.checkpoint import load_checkpoint, save_atomic
 from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, Policy, preset
 from .split import load_split, make_split
@@ -117,6 +118,10 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     split = load_split(split_path)
     if not split["train"]:
         raise AdlError(f"{split_path}: the train split is empty")
+    with schema.open_dataset(data, split["train"] + split["test"]) as f:
+        horizon = int(f.attrs["n_waypoints"])
+    if horizon != cfg.horizon:
+        raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
     train_names, val_names = split_validation(data, split["train"], val_fraction, seed)
     stats = compute_stats(str(data), train_names)
     train_ds = TrajectoryDataset(str(data), train_names, stats, cfg.image_size, cfg.use_depth)
@@ -164,6 +169,9 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         total, n = 0.0, 0
         for obs, act in loader:
             loss = policy.loss(obs, act, gen)
+            if not torch.isfinite(loss):  # stop before the weights or last.pt take the NaN
+                raise AdlError(f"{cfg.model}: training diverged (loss {float(loss.detach())} in epoch {epoch + 1}); the last "
+                               f"good checkpoint is kept in {out / 'last.pt'}; try a lower --lr")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
@@ -214,50 +222,52 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m adlpipe.train", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser("python -m adlpipe.train", __doc__)
     p.add_argument("--model", required=True, choices=sorted(MODELS))
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
     p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
     p.add_argument("--out", type=Path, help="output folder (default: models/<model>)")
     p.add_argument("--config", choices=sorted(PRESETS), default="small",
                    help="small: trains on 2 CPU cores in minutes (default); paper: 224x224, full-size networks")
-    p.add_argument("--image-size", type=int, help="override the preset's input size")
+    p.add_argument("--image-size", type=int_range(16, 1024), help="override the preset's input size")
     p.add_argument("--depth", action="store_true", help="add the depth image as an input channel")
-    p.add_argument("--epochs", type=int, default=100)
-    p.add_argument("--batch-size", type=int, default=32)
-    p.add_argument("--lr", type=float, help="AdamW learning rate (default: the preset's, small 1e-3, paper 1e-4)")
-    p.add_argument("--weight-decay", type=float, default=1e-6)
-    p.add_argument("--warmup-steps", type=int, default=50)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--epochs", type=POSITIVE, default=100)
+    p.add_argument("--batch-size", type=POSITIVE, default=32)
+    p.add_argument("--lr", type=float_range(0, 1, lo_open=True),
+                   help="AdamW learning rate (default: the preset's, small 1e-3, paper 1e-4)")
+    p.add_argument("--weight-decay", type=float_range(0, 1), default=1e-6)
+    p.add_argument("--warmup-steps", type=NON_NEGATIVE, default=50)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--threads", type=NON_NEGATIVE, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument("--log", type=Path, help="per-epoch CSV for dvc plots (default: <out>/log.csv)")
-    p.add_argument("--val-fraction", type=float, default=0.1,
+    p.add_argument("--val-fraction", type=float_range(0, 0.9), default=0.1,
                    help="part of the train split held out for validation and checkpoint selection (0: none)")
-    p.add_argument("--val-every", type=int, default=5, help="measure val px every N epochs (and at the last)")
+    p.add_argument("--val-every", type=POSITIVE, default=5, help="measure val px every N epochs (and at the last)")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and train from scratch")
     args = p.parse_args(argv)
-    if args.epochs < 1 or args.batch_size < 1 or args.val_every < 1:
-        raise AdlError("--epochs, --batch-size and --val-every must be >= 1")
-    if not 0 <= args.val_fraction < 1:
-        raise AdlError("--val-fraction must be in [0, 1)")
     if args.threads:
         torch.set_num_threads(args.threads)
     overrides = {"use_depth": args.depth}
     if args.image_size:
         overrides["image_size"] = args.image_size
-    cfg = preset(args.config, args.model, **overrides)
     out = args.out or Path("models") / args.model
     if args.restart:
-        for name in ("last.pt", "best.pt"):
-            (out / name).unlink(missing_ok=True)
-    if not args.data.exists():
-        raise AdlError(f"{args.data}: no such dataset; run python -m adlpipe.ingest first")
+        with exclusive(out):
+            for name in ("last.pt", "best.pt"):
+                (out / name).unlink(missing_ok=True)
+    with schema.open_dataset(args.data) as f:
+        horizon = int(f.attrs["n_waypoints"])
+    if horizon % 4:  # the U-Net halves the sequence twice; the transformers take any length
+        raise AdlError(f"{args.data}: {horizon} waypoints per trajectory; the models need a multiple of 4 "
+                       "(re-ingest with --waypoints 32)")
+    overrides["horizon"] = horizon
+    cfg = preset(args.config, args.model, **overrides)
     split = args.split or args.data.with_name("split.json")
     lr = args.lr if args.lr is not None else PRESET_LR[args.config]
-    m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay, args.warmup_steps,
-              args.seed, args.log or out / "log.csv", progress=True, val_fraction=args.val_fraction,
-              val_every=args.val_every)
+    with exclusive(out):
+        m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay,
+                  args.warmup_steps, args.seed, args.log or out / "log.csv", progress=True,
+                  val_fraction=args.val_fraction, val_every=args.val_every)
     val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"
            f"{'' if m['converged'] else ', NOT CONVERGED'}" if m["val_px_best"] is not None else "")
     print(f"{out}: {cfg.model} trained {m['epochs']} epochs ({m['optimizer_steps']} steps) in {m['seconds']:.0f} s, "

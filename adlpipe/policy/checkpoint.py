@@ -27,12 +27,14 @@ def load_checkpoint(path: Path) -> dict:
 def load_policy(path: Path) -> tuple[Policy, dict]:
     """An EMA policy saved by training (model.pt: the last epoch, best.pt: the best validation epoch), ready for
     inference, and its checkpoint metadata."""
+    if not path.is_file():
+        raise AdlError(f"{path}: no such checkpoint; train the model first (python -m adlpipe.train)")
     ck = load_checkpoint(path)
-    if "config" not in ck or "ema" not in ck:
-        raise AdlError(f"{path}: not an adlpipe policy checkpoint (no config/ema)")
+    if not isinstance(ck, dict) or not {"config", "ema", "stats"} <= set(ck):
+        raise AdlError(f"{path}: not an adlpipe policy checkpoint (needs config, ema and stats)")
     try:
         policy = Policy(ModelConfig.from_dict(ck["config"]))
         policy.load_state_dict(ck["ema"])
-    except (TypeError, ValueError, KeyError, RuntimeError) as exc:
+    except (TypeError, ValueError, KeyError, RuntimeError, AttributeError) as exc:
         raise AdlError(f"{path}: checkpoint does not match this adlpipe's models ({type(exc).__name__})") from exc
     return policy.eval(), ck

@@ -1,0 +1,225 @@
+"""Bad input to every stage: one stderr line naming the problem, a non-zero exit, no traceback, old outputs kept.
+
+Stages run in-process through their real entry point (run_cli + main) to keep the suite fast; a few cases that
+need a process of their own (a read-only file system, concurrent writers) run as subprocesses.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from conftest import REPO, one_line_error
+
+from adlpipe.errors import run_cli
+from adlpipe.policy.models import ModelConfig
+from adlpipe.train import train
+
+TINY = dict(image_size=32, encoder_width=8, obs_dim=16, down_dims=(16, 32, 64), d_model=32, n_layers=1, n_heads=2)
+
+
+class Proc:
+    def __init__(self, rc: int, stdout: str, stderr: str) -> None:
+        self.returncode, self.stdout, self.stderr = rc, stdout, stderr
+
+
+def run_stage(capsys: pytest.CaptureFixture, stage: str, *args: object) -> Proc:
+    module = importlib.import_module(f"adlpipe.{stage}")
+    capsys.readouterr()
+    try:
+        rc = run_cli(f"adlpipe.{stage}", module.main, [str(a) for a in args])
+    except SystemExit as exc:  # the parser's own exit
+        rc = int(exc.code or 0)
+    out = capsys.readouterr()
+    return Proc(rc, out.out, out.err)
+
+
+@pytest.fixture(scope="module")
+def world(ingested: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A valid dataset, split and tiny trained model, to pair with one bad input at a time."""
+    root = tmp_path_factory.mktemp("bad_inputs")
+    data = root / "adl.h5"
+    shutil.copy(ingested, data)
+    with h5py.File(data) as f:
+        names = sorted(f["episodes"])
+    split = root / "split.json"
+    split.write_text(json.dumps({"train": names[:2], "test": names[2:]}))
+    model = root / "model"
+    train(data, split, model, ModelConfig(model="fm_cnn", **TINY), epochs=1, batch_size=2, val_fraction=0)
+    return {"data": data, "split": split, "model": model, "root": root}
+
+
+def bad_data_files(root: Path) -> dict[str, Path]:
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "folder.h5").mkdir(exist_ok=True)
+    (root / "empty.h5").write_bytes(b"")
+    (root / "text.h5").write_text("not hdf5 at all\n")
+    with h5py.File(root / "foreign.h5", "w") as f:
+        f["something"] = np.arange(3)
+    return {"missing": root / "missing.h5", "folder": root / "folder.h5", "empty": root / "empty.h5",
+            "not-hdf5": root / "text.h5", "foreign-hdf5": root / "foreign.h5"}
+
+
+STAGES_WITH_DATA = ["split", "train", "evaluate", "replay", "inspect"]
+
+
+def data_args(stage: str, w: dict[str, Path], data: Path, tmp: Path) -> list[object]:
+    return {
+        "split": [data, "-o", tmp / "s.json"],
+        "train": ["--model", "fm_cnn", "--data", data, "--split", w["split"], "--out", tmp / "m", "--epochs", 1],
+        "evaluate": ["--models", w["model"], "--data", data, "--split", w["split"], "--metrics", tmp / "e.json",
+                     "--details", tmp / "d.json", "--plots", tmp / "p.csv", "--table", tmp / "t.md"],
+        "replay": ["--models", w["model"], "--data", data, "--split", w["split"], "--metrics", tmp / "r.json",
+                   "--details", tmp / "rd.json", "--table", tmp / "t2.md"],
+        "inspect": ["--model", w["model"], "--data", data, "--split", w["split"], "-o", tmp / "x.rrd"],
+    }[stage]
+
+
+@pytest.mark.parametrize("kind", ["missing", "folder", "empty", "not-hdf5", "foreign-hdf5"])
+@pytest.mark.parametrize("stage", STAGES_WITH_DATA)
+def test_a_bad_dataset_is_one_line(capsys: pytest.CaptureFixture, world: dict, tmp_path: Path, stage: str,
+                                   kind: str) -> None:
+    data = bad_data_files(tmp_path / "bad")[kind]
+    line = one_line_error(run_stage(capsys, stage, *data_args(stage, world, data, tmp_path)))
+    assert str(data) in line
+    assert not any(p.name.startswith(".") and ".tmp" in p.name for p in tmp_path.iterdir())
+
+
+def test_a_dataset_with_a_nan_trajectory_is_refused(capsys: pytest.CaptureFixture, world: dict,
+                                                    tmp_path: Path) -> None:
+    data = tmp_path / "nan.h5"
+    shutil.copy(world["data"], data)
+    with h5py.File(data, "a") as f:
+        name = sorted(f["episodes"])[0]
+        t = f["episodes"][name]["traj3d"]
+        t[3, 1] = np.nan
+    line = one_line_error(run_stage(capsys, "train", *data_args("train", world, data, tmp_path)))
+    assert "non-finite" in line and name in line
+
+
+@pytest.mark.parametrize(("content", "needle"), [
+    ("{", "cannot read split"),
+    ('{"train": "abc", "test": []}', "list of episode names"),
+    ('{"train": [1, 2], "test": []}', "list of episode names"),
+    ('{"train": ["no_such_episode"], "test": []}', "not in the dataset"),
+    ("[]", "not a split file"),
+])
+def test_a_bad_split_is_one_line(capsys: pytest.CaptureFixture, world: dict, tmp_path: Path, content: str,
+                                 needle: str) -> None:
+    split = tmp_path / "split.json"
+    split.write_text(content)
+    line = one_line_error(run_stage(capsys, "train", "--model", "fm_cnn", "--data", world["data"], "--split", split,
+                                    "--out", tmp_path / "m", "--epochs", "1"))
+    assert needle in line
+
+
+@pytest.mark.parametrize("case", ["missing", "not-a-checkpoint", "no-stats", "unknown-key"])
+def test_a_bad_checkpoint_is_one_line(capsys: pytest.CaptureFixture, world: dict, tmp_path: Path, case: str) -> None:
+    import torch
+
+    model = tmp_path / "model"
+    model.mkdir()
+    ck = torch.load(world["model"] / "best.pt", weights_only=True)
+    if case == "not-a-checkpoint":
+        (model / "best.pt").write_text("hello")
+    elif case == "no-stats":
+        torch.save({k: v for k, v in ck.items() if k != "stats"}, model / "best.pt")
+    elif case == "unknown-key":
+        torch.save({**ck, "config": {**ck["config"], "wings": 2}}, model / "best.pt")
+    line = one_line_error(run_stage(capsys, "inspect", "--model", model, "--data", world["data"], "--split",
+                                    world["split"], "-o", tmp_path / "x.rrd"))
+    assert "best.pt" in line
+
+
+@pytest.mark.parametrize(("stage", "args", "needle"), [
+    ("evaluate", ["--models", "m", "--steps", "0"], "out of range"),
+    ("evaluate", ["--models", "m", "--steps", "-1"], "out of range"),
+    ("evaluate", ["--models", "m", "--steps", "1000"], "out of range"),
+    ("evaluate", ["--models", "m", "--repeats", "0"], "out of range"),
+    ("evaluate", ["--models", "m", "--best-of", "-2"], "out of range"),
+    ("evaluate", ["--models", "m", "--threads", "-1"], "out of range"),
+    ("train", ["--model", "fm_cnn", "--lr", "-1"], "out of range"),
+    ("train", ["--model", "fm_cnn", "--lr", "nan"], "not a finite number"),
+    ("train", ["--model", "fm_cnn", "--image-size", "0"], "out of range"),
+    ("train", ["--model", "fm_cnn", "--image-size", "-5"], "out of range"),
+    ("train", ["--model", "fm_cnn", "--epochs", "x"], "not an integer"),
+    ("record", ["--out", "o", "--camera-hz", "0"], "out of range"),
+    ("record", ["--out", "o", "--camera-hz", "-1"], "out of range"),
+    ("record", ["--out", "o", "--size", "100000"], "out of range"),
+    ("replay", ["--models", "m", "--closed-loop", "-1"], "out of range"),
+    ("replay", ["--models", "m", "--max-episodes", "0"], "out of range"),
+    ("split", ["x.h5", "--test-fraction", "1.5"], "out of range"),
+    ("ingest", ["b.mcap", "-o", "x.h5", "--waypoints", "1"], "out of range"),
+    ("inspect", ["--model", "m", "--samples", "0"], "out of range"),
+])
+def test_bad_numbers_are_refused_at_the_parser(capsys: pytest.CaptureFixture, stage: str, args: list[str],
+                                               needle: str) -> None:
+    assert needle in one_line_error(run_stage(capsys, stage, *args))
+
+
+def test_an_output_path_that_is_a_folder_keeps_every_old_output(capsys: pytest.CaptureFixture, world: dict,
+                                                                tmp_path: Path) -> None:
+    metrics = tmp_path / "e.json"
+    metrics.write_text("old")
+    (tmp_path / "table.md").mkdir()
+    line = one_line_error(run_stage(capsys, "evaluate", "--models", world["model"], "--data", world["data"],
+                                    "--split", world["split"], "--metrics", metrics, "--details", tmp_path / "d.json",
+                                    "--plots", tmp_path / "p.csv", "--table", tmp_path / "table.md"))
+    assert "table.md" in line and "folder" in line
+    assert metrics.read_text() == "old" and not (tmp_path / "d.json").exists()
+
+
+def test_training_stops_on_a_non_finite_loss_and_keeps_the_last_good_checkpoint(world: dict, tmp_path: Path) -> None:
+    import torch
+
+    from adlpipe.errors import AdlError
+    from adlpipe.policy.checkpoint import load_checkpoint, save_atomic
+
+    out = tmp_path / "m"
+    cfg = ModelConfig(model="bc_cnn", **TINY)
+    train(world["data"], world["split"], out, cfg, epochs=3, batch_size=2, val_fraction=0, stop_after_epoch=1)
+    ck = load_checkpoint(out / "last.pt")
+    first = next(iter(ck["model"]))
+    ck["model"][first] = torch.full_like(ck["model"][first], float("nan"))  # the run goes bad in epoch 2
+    save_atomic(ck, out / "last.pt")
+    before = (out / "last.pt").read_bytes()
+    with pytest.raises(AdlError, match="diverged"):
+        train(world["data"], world["split"], out, cfg, epochs=3, batch_size=2, val_fraction=0)
+    assert (out / "last.pt").read_bytes() == before and not (out / "model.pt").exists()
+
+
+def _can_unshare() -> bool:
+    return shutil.which("unshare") is not None and subprocess.run(
+        ["unshare", "-rm", "true"], capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(not _can_unshare(), reason="needs unshare for a private read-only mount")
+@pytest.mark.parametrize("stage", ["record", "ingest", "split", "train", "evaluate", "replay", "inspect", "report"])
+def test_a_read_only_output_is_one_line(world: dict, mcap_bags: list[Path], tmp_path: Path, stage: str) -> None:
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    w = world
+    args = {
+        "record": ["--out", ro / "bags", "--episodes", 1, "--tasks", "wipe the nose", "--size", 32],
+        "ingest": [mcap_bags[0], "-o", ro / "x.h5", "--size", 64],
+        "split": [w["data"], "-o", ro / "s.json"],
+        "train": ["--model", "fm_cnn", "--data", w["data"], "--split", w["split"], "--out", ro / "m", "--epochs", 1],
+        "evaluate": ["--models", w["model"], "--data", w["data"], "--split", w["split"], "--metrics", ro / "e.json"],
+        "replay": ["--models", w["model"], "--data", w["data"], "--split", w["split"], "--metrics", ro / "r.json"],
+        "inspect": ["--model", w["model"], "--data", w["data"], "--split", w["split"], "-o", ro / "x.rrd"],
+        "report": ["--eval", w["split"], "--replay", w["split"], "-o", ro / "r.md"],
+    }[stage]
+    cmd = " ".join(f"'{a}'" for a in [sys.executable, "-m", f"adlpipe.{stage}", *map(str, args)])
+    proc = subprocess.run(["unshare", "-rm", "sh", "-c", f"mount -t tmpfs -o ro tmpfs '{ro}' && exec {cmd}"],
+                          capture_output=True, text=True, cwd=REPO, timeout=300,
+                          env={**os.environ, "MUJOCO_GL": "egl"})
+    line = one_line_error(proc)
+    assert "read-only" in line, line
