@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import signal
 import sys
 from collections.abc import Callable
 
@@ -28,6 +29,8 @@ def os_error_message(exc: OSError) -> str:
 def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] | None = None) -> int:
     """Run a stage's main(); AdlError, OS errors and KeyboardInterrupt become one line on stderr. Outputs are
     written atomically (adlpipe.atomic), so whatever stopped the stage, the old files are still there."""
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return main(argv)
     except AdlError as exc:

@@ -170,8 +170,8 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         for obs, act in loader:
             loss = policy.loss(obs, act, gen)
             if not torch.isfinite(loss):  # stop before the weights or last.pt take the NaN
-                raise AdlError(f"{cfg.model}: training diverged (loss {float(loss.detach())} in epoch {epoch + 1}); the last "
-                               f"good checkpoint is kept in {out / 'last.pt'}; try a lower --lr")
+                raise AdlError(f"{cfg.model}: training diverged (loss {float(loss.detach())} in epoch {epoch + 1}); "
+                               f"the last good checkpoint is kept in {out / 'last.pt'}; try a lower --lr")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)

@@ -223,3 +223,98 @@ def test_a_read_only_output_is_one_line(world: dict, mcap_bags: list[Path], tmp_
                           env={**os.environ, "MUJOCO_GL": "egl"})
     line = one_line_error(proc)
     assert "read-only" in line, line
+
+
+def test_a_second_writer_of_one_output_is_refused_while_the_first_holds_it(mcap_bags: list[Path],
+                                                                          tmp_path: Path) -> None:
+    from adlpipe.lock import exclusive
+
+    out = tmp_path / "same.h5"
+    with exclusive(out):  # as a running ingest would
+        line = one_line_error(subprocess.run([sys.executable, "-m", "adlpipe.ingest", *map(str, mcap_bags), "-o",
+                                              str(out), "--size", "64"], capture_output=True, text=True, cwd=REPO))
+        assert f"in use by pid {os.getpid()}" in line and not out.exists()
+        line = one_line_error(subprocess.run([sys.executable, "-m", "adlpipe.train", "--model", "fm_cnn", "--data",
+                                              str(out), "--out", str(out)], capture_output=True, text=True, cwd=REPO))
+        assert "in use by pid" in line or "no such dataset" in line
+
+
+def test_two_ingests_started_together_lose_nothing(mcap_bags: list[Path], tmp_path: Path) -> None:
+    """Different bags into one file at once: each run either adds its bags or is refused as 'in use'; re-running the
+    refused one, the file holds every episode."""
+    out = tmp_path / "same.h5"
+    halves = [mcap_bags[:2], mcap_bags[2:]]
+
+    def start(bags: list[Path]) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "adlpipe.ingest", *map(str, bags), "-o", str(out), "--size",
+                                 "64", "--workers", "1"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
+
+    procs = [start(h) for h in halves]
+    for bags, proc in zip(halves, procs, strict=True):
+        _, err = proc.communicate(timeout=300)
+        if proc.returncode != 0:
+            assert "in use by pid" in err, err
+            assert start(bags).wait(timeout=300) == 0
+    with h5py.File(out) as f:
+        assert len(f["episodes"]) == len(mcap_bags)
+
+
+@pytest.mark.parametrize("delay", [1.5, 3.0, 4.5])
+def test_ctrl_c_stops_a_parallel_ingest_and_keeps_the_old_file(mcap_bags: list[Path], tmp_path: Path,
+                                                               delay: float) -> None:
+    import signal
+    import time
+
+    out = tmp_path / "x.h5"
+    old = b"an older dataset stays byte for byte"
+    out.write_bytes(old)
+    bags = []
+    for i in range(8):  # copies are distinct files to the pool; their episodes are the same
+        for b in mcap_bags:
+            c = tmp_path / f"{i}_{b.name}"
+            shutil.copy(b, c)
+            bags.append(c)
+    out.unlink()
+    proc = subprocess.Popen([sys.executable, "-m", "adlpipe.ingest", *map(str, bags), "-o", str(out), "--size", "64",
+                             "--workers", "2"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(delay)
+    proc.send_signal(signal.SIGINT)
+    t0 = time.time()
+    _, err = proc.communicate(timeout=60)
+    if proc.returncode == 0:  # it finished before the signal came: nothing to check about stopping
+        return
+    assert proc.returncode == 130, err
+    assert time.time() - t0 < 10
+    assert "Traceback" not in err and not out.exists()
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+@pytest.mark.skipif(not _can_unshare(), reason="needs unshare for a private small file system")
+@pytest.mark.parametrize("stage", ["ingest", "train"])
+def test_a_full_disk_is_one_line_and_keeps_the_old_output(world: dict, mcap_bags: list[Path], tmp_path: Path,
+                                                          stage: str) -> None:
+    small = tmp_path / "small"
+    small.mkdir()
+    old = world["root"] / "old_small.h5"
+    if stage == "ingest":  # a dataset of one bag, to be extended by the other two on a nearly full disk
+        subprocess.run([sys.executable, "-m", "adlpipe.ingest", str(mcap_bags[0]), "-o", str(old), "--size", "64"],
+                       cwd=REPO, check=True, capture_output=True)
+        inner = (f"cp '{old}' '{small}/x.h5' && head -c $(( $(stat -f -c %a '{small}') * $(stat -f -c %S '{small}') "
+                 f"- 50000 )) /dev/zero > '{small}/filler'; '{sys.executable}' -m adlpipe.ingest "
+                 + " ".join(f"'{b}'" for b in mcap_bags) + f" -o '{small}/x.h5' --size 64")
+        target = "x.h5"
+    else:
+        inner = (f"head -c $(( $(stat -f -c %a '{small}') * $(stat -f -c %S '{small}') - 20000 )) /dev/zero > "
+                 f"'{small}/filler'; '{sys.executable}' -m adlpipe.train --model fm_cnn --data '{world['data']}' "
+                 f"--split '{world['split']}' --out '{small}/m' --epochs 1 --image-size 32")
+        target = None
+    script = (f"mount -t tmpfs -o size=3m tmpfs '{small}' && {inner}; rc=$?; "
+              f"ls -a '{small}' '{small}/m' 2>/dev/null; cmp '{small}/x.h5' '{old}' 2>/dev/null && echo SAME; exit $rc")
+    proc = subprocess.run(["unshare", "-rm", "sh", "-c", script], capture_output=True, text=True, cwd=REPO,
+                          timeout=300)
+    line = one_line_error(proc)
+    assert "no space left on device writing" in line, line
+    assert ".tmp" not in proc.stdout
+    if target:
+        assert "SAME" in proc.stdout

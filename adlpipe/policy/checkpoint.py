@@ -3,6 +3,8 @@ and a trained policy loaded for inference without importing the training loop.""
 
 from __future__ import annotations
 
+import errno
+import shutil
 from pathlib import Path
 
 import torch
@@ -14,7 +16,12 @@ from .models import ModelConfig, Policy
 
 def save_atomic(obj: dict, path: Path) -> None:
     with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+        try:
+            torch.save(obj, tmp)
+        except RuntimeError as exc:  # torch reports a full disk as "unexpected pos ..." from its zip writer
+            if shutil.disk_usage(tmp.parent).free < (1 << 20):
+                raise OSError(errno.ENOSPC, "No space left on device", str(path)) from exc
+            raise
 
 
 def load_checkpoint(path: Path) -> dict:
