@@ -87,6 +87,18 @@ class TfBuffer:
             frame = self.parent[frame]
         return None
 
+    def motion_times(self, frame: str, root: str) -> tuple[str, list[float]] | None:
+        """The frame whose samples time `frame`'s path in `root`: `frame` itself if it moves, else its nearest
+        moving ancestor (a tool frame that robot_state_publisher puts on /tf_static, off a moving link), with the
+        sample times. None if no frame on the chain to `root` moves."""
+        for _ in range(64):
+            if self.times.get(frame):
+                return frame, self.times[frame]
+            if frame == root or frame not in self.parent:
+                return None
+            frame = self.parent[frame]
+        return None
+
     def first_time(self, child: str) -> float | None:
         return self.times[child][0] if self.times.get(child) else None
 

@@ -31,17 +31,16 @@ from tqdm import tqdm
 
 from . import schema
 from .atomic import atomic_path, check_outputs
+from .bags.episode_reader import BagReadout, check_counts, read_bag
+from .bags.images import decode_depth, decode_image
 from .bags.reader import BagSource
+from .bags.topics import TopicMap
 from .cli import Parser, int_range
 from .errors import AdlError, run_cli
-from .geometry import TfBuffer, matrix_to_quat, pose_matrix, project, resample, scale_intrinsics
-from .images import decode_image, depth_to_metres
+from .geometry import matrix_to_quat, project, resample, scale_intrinsics
 from .lock import exclusive
-from .topics import TopicMap
 
-IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}
 MAX_COORD_M = 1000.0  # tf translations beyond this are corrupt data, not a robot's workspace
-TF_TYPES = {"tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"}  # tf/tfMessage: old ROS1 bags, same layout
 
 
 def sha256_of(path: Path) -> str:
@@ -57,43 +56,11 @@ def sha256_of(path: Path) -> str:
     return h.hexdigest()
 
 
-def stamp_s(msg: object) -> float:
-    """header.stamp in seconds (ROS2 sec/nanosec, ROS1 secs/nsecs)."""
-    st = msg.header.stamp
-    sec = getattr(st, "sec", None)
-    if sec is None:
-        sec = st.secs
-    nsec = getattr(st, "nanosec", None)
-    if nsec is None:
-        nsec = st.nsecs
-    return int(sec) + int(nsec) * 1e-9
-
-
 def _field(msg: object, *names: str) -> object:
     for n in names:
         if hasattr(msg, n):
             return getattr(msg, n)
     raise AttributeError(names[0])
-
-
-def _check_types(bag: Path, topics: dict, tm: TopicMap) -> None:
-    want = {tm.image: IMAGE_TYPES, tm.camera_info: {"sensor_msgs/msg/CameraInfo"},
-            tm.tf: TF_TYPES, tm.tf_static: TF_TYPES,
-            tm.depth: {"sensor_msgs/msg/Image"}, tm.affordance: {"sensor_msgs/msg/Image"},
-            tm.joints: {"sensor_msgs/msg/JointState"}, tm.task: {"std_msgs/msg/String"}}
-    for topic, types in want.items():
-        if topic and topic in topics and topics[topic].msgtype not in types | {"?"}:
-            expected = " or ".join(sorted(types))
-            raise AdlError(f"{bag}: topic {topic} has type {topics[topic].msgtype}, expected {expected}")
-
-
-def check_counts(bag: Path, topics: dict, read: dict[str, int]) -> None:
-    """Compare messages read with the bag's own counts: a reader that silently yields nothing (e.g. a rosbag2
-    QoS mismatch) must not pass as an empty topic."""
-    for topic, n in read.items():
-        declared = topics[topic].declared
-        if declared is not None and n != declared:
-            raise AdlError(f"{bag}: read {n} of the {declared} messages the bag declares on {topic}")
 
 
 def recovery_note(src: BagSource, read: dict[str, int]) -> str:
@@ -121,133 +88,98 @@ def list_topics(bag: Path) -> list[tuple[str, str, int | None, int]]:
     return [(t, i.msgtype, i.declared, read[t]) for t, i in sorted(topics.items())]
 
 
-class _Nearest:
-    """Keeps the message whose stamp is nearest a reference time (set once the first image arrives)."""
-
-    def __init__(self) -> None:
-        self.best: tuple[float, float, object] | None = None  # (|dt|, stamp, msg)
-        self.pending: list[tuple[float, object]] = []  # before the reference is known (bounded below)
-
-    def offer(self, t: float, msg: object, ref: float | None) -> None:
-        if ref is None:
-            self.pending.append((t, msg))
-            del self.pending[:-4]  # memory stays flat: only the latest few before the first image
-            return
-        for tp, mp in self.pending:
-            self._consider(tp, mp, ref)
-        self.pending.clear()
-        self._consider(t, msg, ref)
-
-    def _consider(self, t: float, msg: object, ref: float) -> None:
-        if self.best is None or abs(t - ref) < self.best[0]:
-            self.best = (abs(t - ref), t, msg)
-
-    def finish(self, ref: float) -> tuple[float, object] | None:
-        for tp, mp in self.pending:
-            self._consider(tp, mp, ref)
-        return (self.best[1], self.best[2]) if self.best else None
-
-
 def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_override: str | None = None,
-                    recover: bool = False, sha: str | None = None) -> tuple[schema.Episode, str]:
-    """Read one bag into an Episode; returns it with a note (recovery losses, warnings)."""
+                    recover: bool = False, sha: str | None = None,
+                    allow_tf_gaps: bool = False) -> tuple[schema.Episode, str]:
+    """Read one bag into an Episode; returns it with a note (recovery losses, bridged tf gaps)."""
     src = BagSource(bag, recover=recover)
-    topics = src.topics()
-    missing = [t for t in tm.required_topics() if t not in topics]
-    if missing:
-        have = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(topics.items())) or "no topics"
-        raise AdlError(f"{bag}: missing required topic(s) {', '.join(missing)}; the bag has: {have}")
-    _check_types(bag, topics, tm)
-    wanted = [t for t in tm.required_topics() + tm.optional_topics() if t in topics]
-    read = dict.fromkeys(wanted, 0)
-
-    image = info = task = None
-    t_img: float | None = None
-    depth, aff = _Nearest(), _Nearest()
-    tf = TfBuffer()
-    joint_t: list[float] = []
-    joint_pos: list[np.ndarray] = []
-    joint_names: list[str] = []
-    first_pose: dict[str, tuple[float, str, np.ndarray]] = {}
-    where = lambda topic: f"{bag}: topic {topic}"  # noqa: E731
-
-    settled: set[str] = set()  # depth/affordance topics whose stamps have passed the first image
-    for topic, _log_t, decode in src.messages(wanted):
-        read[topic] += 1
-        if topic == tm.image:
-            if image is None:
-                msg = decode()
-                image, t_img = decode_image(msg, where(topic)), stamp_s(msg)
-                camera_frame = str(msg.header.frame_id)
-        elif topic == tm.camera_info:
-            if info is None:
-                info = decode()
-        elif topic in (tm.depth, tm.affordance):
-            if topic not in settled:
-                msg = decode()
-                t = stamp_s(msg)
-                (depth if topic == tm.depth else aff).offer(t, msg, t_img)
-                if t_img is not None and t > t_img + tm.sync_tolerance_s:
-                    settled.add(topic)
-        elif topic in (tm.tf, tm.tf_static):
-            for tr in decode().transforms:
-                T = pose_matrix([tr.transform.translation.x, tr.transform.translation.y, tr.transform.translation.z],
-                                [tr.transform.rotation.w, tr.transform.rotation.x, tr.transform.rotation.y,
-                                 tr.transform.rotation.z])
-                child, parent = str(tr.child_frame_id).lstrip("/"), str(tr.header.frame_id).lstrip("/")
-                t = stamp_s(tr)
-                tf.add(parent, child, t, T, static=topic == tm.tf_static)
-                first_pose.setdefault(child, (t, parent, T))
-        elif topic == tm.joints:
-            msg = decode()
-            pos = np.asarray(msg.position, float)
-            if not joint_names:
-                joint_names = [str(n) for n in msg.name]
-            if len(pos) == len(joint_names):
-                joint_t.append(stamp_s(msg))
-                joint_pos.append(pos)
-        elif topic == tm.task and task is None:
-            task = str(decode().data)
-
-    note = ""
+    r = read_bag(src, tm)
+    notes = []
     if recover and src.damaged:
-        note = recovery_note(src, read)
+        notes.append(recovery_note(src, r.read))
     else:
-        check_counts(bag, topics, read)
-    if image is None or t_img is None:
-        raise AdlError(f"{bag}: no message could be read on the image topic {tm.image}")
-    if info is None:
-        raise AdlError(f"{bag}: no message on the camera-info topic {tm.camera_info}")
-    task = task_override or task
+        check_counts(bag, r.topics, r.read)
+    task = task_override or r.task
     if not task:
         raise AdlError(f"{bag}: no task name (topic {tm.task} absent or empty); pass --task")
     if any(ord(c) < 32 for c in task) or len(task) > 200:
         raise AdlError(f"{bag}: task name on {tm.task} has control characters or is too long: {task[:60]!r}")
+    K0, camera_frame, T_bc = camera_model(r, tm)
+    ee_t, ee_p, t_end, gap_note = end_effector_path(r, tm, allow_tf_gaps)
+    notes += [gap_note] if gap_note else []
+    traj3d = resample(ee_t, ee_p, 0.0, t_end, n_waypoints)
 
-    h0, w0 = image.shape[:2]
-    K0 = np.asarray(_field(info, "k", "K"), float).reshape(3, 3)
-    if not np.isfinite(K0).all() or int(info.width) not in (0, w0) or int(info.height) not in (0, h0) \
-            or K0[0, 0] <= 0 or K0[1, 1] <= 0:
-        raise AdlError(f"{bag}: camera info ({info.width}x{info.height}, fx={K0[0, 0]}) does not match the "
+    # Images at the stored resolution; intrinsics follow the resize.
+    h0, w0 = r.image.shape[:2]
+    K = scale_intrinsics(K0, size / w0, size / h0)
+    image = r.image if r.image.ndim == 3 else np.repeat(r.image[..., None], 3, 2)
+    rgb = cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA).astype(np.uint8)
+    depth_img = _synced_image(r.depth, tm.depth, r, tm, "depth image")
+    if depth_img is not None:
+        depth_img = cv2.resize(decode_depth(depth_img, f"{bag}: topic {tm.depth}"), (size, size),
+                               interpolation=cv2.INTER_NEAREST)
+    aff_msg = _synced_image(r.affordance, tm.affordance, r, tm, "affordance map")
+    aff_img = np.zeros((size, size), np.float32)
+    if aff_msg is not None:
+        a = decode_image(aff_msg, f"{bag}: topic {tm.affordance}").astype(np.float32)
+        if a.ndim != 2:
+            raise AdlError(f"{bag}: affordance map on {tm.affordance} must be single channel (32FC1)")
+        aff_img = cv2.resize(np.nan_to_num(a), (size, size), interpolation=cv2.INTER_LINEAR)
+    names, poses = object_poses(r, tm, camera_frame)
+    n_joints = len(r.joint_names) if r.joint_t else 0
+    ep = schema.Episode(
+        task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=r.kind,
+        duration_s=t_end, stamp0_ns=int(round(r.t_img * 1e9)), base_frame=tm.base_frame, camera_frame=camera_frame,
+        rgb=rgb, affordance=aff_img, traj3d=traj3d, traj2d=project(traj3d, K, T_bc), K=K, T_base_camera=T_bc,
+        depth=depth_img, has_affordance=aff_msg is not None, object_names=names,
+        objects=np.array(poses).reshape(-1, 7), ee_t=ee_t, ee_pos=ee_p,
+        joint_t=np.asarray(r.joint_t, float) - r.t_img,
+        joint_pos=np.asarray(r.joint_pos, float).reshape(len(r.joint_t), n_joints),
+        joint_names=r.joint_names if n_joints else [], note="; ".join(notes),
+    )
+    return ep, ep.note
+
+
+def camera_model(r: BagReadout, tm: TopicMap) -> tuple[np.ndarray, str, np.ndarray]:
+    """(intrinsics of the recorded image, camera frame, camera pose in the base frame)."""
+    h0, w0 = r.image.shape[:2]
+    info = r.info
+    try:
+        K0 = np.asarray(_field(info, "k", "K"), float).reshape(3, 3)
+        width, height = int(info.width), int(info.height)
+        camera_frame = r.camera_frame or str(info.header.frame_id)
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise AdlError(f"{r.bag}: topic {tm.camera_info}: CameraInfo lacks field {exc} (k, width, height, "
+                       "header)") from None
+    if not np.isfinite(K0).all() or width not in (0, w0) or height not in (0, h0) or K0[0, 0] <= 0 or K0[1, 1] <= 0:
+        raise AdlError(f"{r.bag}: camera info ({width}x{height}, fx={K0[0, 0]}) does not match the "
                        f"{w0}x{h0} image on {tm.image}")
-    camera_frame = camera_frame or str(info.header.frame_id)
-    T_bc = tf.lookup(tm.base_frame, camera_frame.lstrip("/"), t_img)
+    T_bc = r.tf.lookup(tm.base_frame, camera_frame.lstrip("/"), r.t_img)
     if T_bc is None:
-        raise AdlError(f"{bag}: no tf chain from camera frame {camera_frame!r} to base frame {tm.base_frame!r}")
+        raise AdlError(f"{r.bag}: no tf chain from camera frame {camera_frame!r} to base frame {tm.base_frame!r}")
     if not np.isfinite(T_bc).all() or np.abs(T_bc[:3, 3]).max() > MAX_COORD_M:
-        raise AdlError(f"{bag}: camera pose from tf ({camera_frame} in {tm.base_frame}) is not finite")
+        raise AdlError(f"{r.bag}: camera pose from tf ({camera_frame} in {tm.base_frame}) is not finite")
+    return K0, camera_frame, T_bc
 
-    # End-effector path in the base frame, from the first image on.
-    ee_times = tf.times.get(tm.ee_frame, [])
-    if not ee_times:
-        raise AdlError(f"{bag}: no tf for end-effector frame {tm.ee_frame!r} (frames: {sorted(tf.parent)})")
+
+def end_effector_path(r: BagReadout, tm: TopicMap, allow_gaps: bool) -> tuple[np.ndarray, np.ndarray, float, str]:
+    """(times from the first image, positions in the base frame, end time, note) of the end-effector frame. A frame
+    on /tf_static (a tool frame off a moving link) follows its nearest moving ancestor, at that frame's times."""
+    bag = r.bag
+    moving = r.tf.motion_times(tm.ee_frame, tm.base_frame)
+    if moving is None:
+        known = sorted(set(r.tf.parent) | set(r.tf.parent.values()))
+        why = "it does not move" if tm.ee_frame in r.tf.parent else "no tf for it"
+        raise AdlError(f"{bag}: end-effector frame {tm.ee_frame!r}: {why} relative to {tm.base_frame!r} "
+                       f"(frames: {known})")
+    mover, ee_times = moving
     ee_pos = []
     for t in ee_times:
-        T = tf.lookup(tm.base_frame, tm.ee_frame, t)
+        T = r.tf.lookup(tm.base_frame, tm.ee_frame, t)
         if T is None:
             raise AdlError(f"{bag}: no tf chain from {tm.ee_frame!r} to base frame {tm.base_frame!r}")
         ee_pos.append(T[:3, 3])
-    ee_t = np.asarray(ee_times) - t_img
+    ee_t = np.asarray(ee_times) - r.t_img
     ee_p = np.asarray(ee_pos)
     if ee_t[0] > tm.sync_tolerance_s:
         raise AdlError(f"{bag}: first end-effector pose is {ee_t[0]:.3f} s after the first image "
@@ -260,55 +192,41 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
                        f"or exceed {MAX_COORD_M} m")
     if not np.all(np.diff(ee_t) >= 0):
         raise AdlError(f"{bag}: end-effector tf stamps go backwards")
-    traj3d = resample(ee_t, ee_p, 0.0, t_end, n_waypoints)
+    inside = ee_t[(ee_t >= -tm.sync_tolerance_s) & (ee_t <= t_end)]
+    gaps = np.diff(inside) if len(inside) > 1 else np.zeros(1)
+    note = ""
+    if gaps.max() > tm.max_tf_gap_s:
+        k = int(gaps.argmax())
+        where = f"{gaps[k]:.2f} s gap in the tf of {mover!r} at {inside[k]:.2f} s after the first image"
+        if not allow_gaps:
+            raise AdlError(f"{bag}: {where} (max_tf_gap_s {tm.max_tf_gap_s}); the path across it would be a guess; "
+                           "pass --allow-tf-gaps to keep the bag with a note")
+        note = f"bridged a {where}"
+    return ee_t, ee_p, t_end, note
 
-    # Images at the stored resolution; intrinsics follow the resize.
-    sx, sy = size / w0, size / h0
-    K = scale_intrinsics(K0, sx, sy)
-    rgb = cv2.resize(image if image.ndim == 3 else np.repeat(image[..., None], 3, 2), (size, size),
-                     interpolation=cv2.INTER_AREA).astype(np.uint8)
-    traj2d = project(traj3d, K, T_bc)
 
-    depth_img = None
-    if tm.depth and tm.depth in topics:
-        found = depth.finish(t_img)
-        if found is None or abs(found[0] - t_img) > tm.sync_tolerance_s:
-            raise AdlError(f"{bag}: no depth image on {tm.depth} within {tm.sync_tolerance_s} s of the first image")
-        d = depth_to_metres(decode_image(found[1], where(tm.depth)), where(tm.depth))
-        depth_img = cv2.resize(d, (size, size), interpolation=cv2.INTER_NEAREST)
-    has_aff = False
-    aff_img = np.zeros((size, size), np.float32)
-    if tm.affordance and tm.affordance in topics:
-        found = aff.finish(t_img)
-        if found is None or abs(found[0] - t_img) > tm.sync_tolerance_s:
-            raise AdlError(f"{bag}: no affordance map on {tm.affordance} within {tm.sync_tolerance_s} s of the "
-                           "first image")
-        a = decode_image(found[1], where(tm.affordance)).astype(np.float32)
-        if a.ndim != 2:
-            raise AdlError(f"{bag}: affordance map on {tm.affordance} must be single channel (32FC1)")
-        aff_img = cv2.resize(np.nan_to_num(a), (size, size), interpolation=cv2.INTER_LINEAR)
-        has_aff = True
+def _synced_image(found: tuple[float, object] | None, topic: str | None, r: BagReadout, tm: TopicMap,
+                  what: str) -> object | None:
+    """The message of an optional image topic nearest the first frame; None if the map or the bag has no such
+    topic; an error if the topic is there but nothing lies within the sync tolerance."""
+    if not topic or topic not in r.topics:
+        return None
+    if found is None or abs(found[0] - r.t_img) > tm.sync_tolerance_s:
+        raise AdlError(f"{r.bag}: no {what} on {topic} within {tm.sync_tolerance_s} s of the first image")
+    return found[1]
 
-    # Initial poses of the other frames hanging off the base (objects, manikin), for replay.
+
+def object_poses(r: BagReadout, tm: TopicMap, camera_frame: str) -> tuple[list[str], list[np.ndarray]]:
+    """Initial poses of the other frames hanging off the base (objects, manikin), for replay."""
     skip = {tm.ee_frame, camera_frame.lstrip("/")}
     names, poses = [], []
-    for child, (t, parent, _T) in sorted(first_pose.items()):
+    for child, (t, parent, _T) in sorted(r.first_pose.items()):
         if child in skip or parent != tm.base_frame:
             continue
-        T = tf.lookup(tm.base_frame, child, t)
+        T = r.tf.lookup(tm.base_frame, child, t)
         names.append(child)
         poses.append(np.concatenate([T[:3, 3], matrix_to_quat(T[:3, :3])]))
-
-    ep = schema.Episode(
-        task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=src.kind,
-        duration_s=t_end, stamp0_ns=int(round(t_img * 1e9)), base_frame=tm.base_frame, camera_frame=camera_frame,
-        rgb=rgb, affordance=aff_img, traj3d=traj3d, traj2d=traj2d, K=K, T_base_camera=T_bc, depth=depth_img,
-        has_affordance=has_aff, object_names=names, objects=np.array(poses).reshape(-1, 7),
-        ee_t=ee_t, ee_pos=ee_p,
-        joint_t=np.asarray(joint_t) - t_img, joint_pos=np.asarray(joint_pos).reshape(len(joint_t), -1),
-        joint_names=joint_names, note=note,
-    )
-    return ep, note
+    return names, poses
 
 
 def check_bag_path(bag: Path) -> None:
@@ -331,13 +249,13 @@ def _ignore_sigint() -> None:
 
 def _worker(job: tuple) -> tuple[str, schema.Episode | None, str, str | None]:
     """(bag, episode or None if already ingested, note, error line or None). Runs in a pool process."""
-    bag, tm, n, size, task, recover, known = job
+    bag, tm, n, size, task, recover, known, allow_gaps = job
     try:
         check_bag_path(Path(bag))
         sha = sha256_of(Path(bag)) if Path(bag).exists() else None
         if sha is not None and sha in known:
             return bag, None, "already ingested", None
-        ep, note = extract_episode(Path(bag), tm, n, size, task, recover, sha)
+        ep, note = extract_episode(Path(bag), tm, n, size, task, recover, sha, allow_gaps)
         return bag, ep, note, None
     except AdlError as exc:
         return bag, None, "", str(exc)
@@ -353,13 +271,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("-o", "--output", type=Path, help="HDF5 file to create or extend (required unless --list)")
     p.add_argument("--list", action="store_true",
                    help="print each bag's topics, types, declared and read message counts; write nothing")
-    p.add_argument("--config", type=Path, help="topic map YAML (keys of adlpipe.topics.TopicMap)")
+    p.add_argument("--config", type=Path, help="topic map YAML (keys of adlpipe.bags.topics.TopicMap)")
     p.add_argument("--waypoints", type=int_range(2, 4096), default=32, help="waypoints per trajectory (default 32)")
     p.add_argument("--size", type=int_range(8, 4096), default=224, help="stored image width and height (default 224)")
     p.add_argument("--task", help="task name for bags without a task topic")
     p.add_argument("--workers", type=int_range(1, 256), default=min(4, os.cpu_count() or 1))
     p.add_argument("--skip-bad", action="store_true",
                    help="write the good bags and report the bad ones (exit 1) instead of writing nothing")
+    p.add_argument("--allow-tf-gaps", action="store_true",
+                   help="keep a bag whose end-effector tf has a gap over max_tf_gap_s, with a note, instead of "
+                   "refusing it")
     p.add_argument("--recover", action="store_true",
                    help="read what is complete in a truncated MCAP and report what was lost")
     args = p.parse_args(argv)
@@ -384,7 +305,7 @@ def remove_stale_temps(output: Path) -> None:
 
 def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, size: int = 224,
            task: str | None = None, workers: int = 1, skip_bad: bool = False, recover: bool = False,
-           progress: bool = False) -> dict:
+           progress: bool = False, allow_tf_gaps: bool = False) -> dict:
     """Ingest bags into `output` atomically. Returns counts; raises AdlError (output untouched) on a bad bag."""
     known: set[str] = set()
     if output.exists():
@@ -394,7 +315,7 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
                 known = schema.episode_shas(f)
         except OSError as exc:
             raise AdlError(f"{output}: existing output is not a readable HDF5 file ({exc})") from exc
-    jobs = [(str(b), tm, n_waypoints, size, task, recover, known) for b in bags]
+    jobs = [(str(b), tm, n_waypoints, size, task, recover, known, allow_tf_gaps) for b in bags]
     results = []
     if workers > 1 and len(jobs) > 1:
         pool = ProcessPoolExecutor(max_workers=workers, initializer=_ignore_sigint)
@@ -466,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
     check_outputs(args.output)
     with exclusive(args.output):
         c = ingest(args.bags, args.output, tm, args.waypoints, args.size, args.task, args.workers, args.skip_bad,
-                   args.recover, progress=True)
+                   args.recover, progress=True, allow_tf_gaps=args.allow_tf_gaps)
     for note in c["notes"]:
         print(f"note: {note}", file=sys.stderr)
     for err in c["errors"]:

@@ -16,11 +16,11 @@ import numpy as np
 from tqdm import tqdm
 
 from .bags import messages as M
+from .bags.topics import TopicMap
 from .bags.writer import FORMATS, BagWriter
 from .cli import NON_NEGATIVE, Parser, float_range, int_range
 from .errors import AdlError, run_cli
 from .geometry import matrix_to_quat
-from .topics import TopicMap
 
 BASE_TIME_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z; episode k starts k*100 s later (deterministic bags)
 CAMERA_FRAME = "camera_color_optical_frame"

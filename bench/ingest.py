@@ -31,7 +31,7 @@ INGEST = """
 import resource, sys, time
 from pathlib import Path
 from adlpipe.ingest import ingest
-from adlpipe.topics import TopicMap
+from adlpipe.bags.topics import TopicMap
 t = time.perf_counter()
 ingest([Path(p) for p in sys.argv[2:]], Path(sys.argv[1]), TopicMap(), 32, 224, workers=1)
 print(time.perf_counter() - t, 0, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)

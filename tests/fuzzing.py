@@ -16,9 +16,9 @@ import h5py
 import numpy as np
 
 from adlpipe import schema
+from adlpipe.bags.topics import TopicMap
 from adlpipe.errors import AdlError
 from adlpipe.ingest import ingest
-from adlpipe.topics import TopicMap
 
 MUTATIONS = ["truncate", "flip", "length", "zero", "duplicate", "splice"]
 

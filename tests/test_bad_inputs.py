@@ -318,3 +318,21 @@ def test_a_full_disk_is_one_line_and_keeps_the_old_output(world: dict, mcap_bags
     assert ".tmp" not in proc.stdout
     if target:
         assert "SAME" in proc.stdout
+
+
+def test_a_jpeg_with_its_frame_header_past_64_kib_decodes() -> None:
+    """Cameras that write large EXIF/ICC segments put the frame header far into the file."""
+    import cv2
+
+    from adlpipe.bags.images import decode_compressed
+
+    img = np.zeros((24, 40, 3), np.uint8)
+    img[:, :20] = (200, 30, 10)
+    ok, enc = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    assert ok
+    jpeg = enc.tobytes()
+    app = b"\xff\xe1" + (65000).to_bytes(2, "big") + b"\0" * 64998  # three 65 kB metadata segments
+    big = jpeg[:2] + app * 3 + jpeg[2:]
+    msg = type("CompressedImage", (), {"data": big, "format": "jpeg"})()
+    out = decode_compressed(msg, "cam")
+    assert out.shape == (24, 40, 3) and abs(int(out[5, 5, 0]) - 200) < 20

@@ -12,11 +12,11 @@ import pytest
 from conftest import PUBLIC_BAGS, one_line_error, run_module
 
 from adlpipe import schema
+from adlpipe.bags.topics import TopicMap
 from adlpipe.errors import AdlError
 from adlpipe.ingest import ingest
 from adlpipe.record import write_episode_bag
 from adlpipe.sim.episode import record_demo
-from adlpipe.topics import TopicMap
 
 
 def _sha(p: Path) -> str:

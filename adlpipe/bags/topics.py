@@ -8,7 +8,7 @@ from pathlib import Path
 
 import yaml
 
-from .errors import AdlError
+from ..errors import AdlError
 
 
 @dataclass(frozen=True)
@@ -25,6 +25,7 @@ class TopicMap:
     ee_frame: str = "ee_link"
     sync_tolerance_s: float = 0.05  # depth/affordance/ee matched to the first image within this
     trajectory_end_s: float | None = None  # seconds after the first image; null: to the last ee pose
+    max_tf_gap_s: float = 0.2  # a longer gap in the end-effector tf is an error (or, with --allow-tf-gaps, a note)
 
     @classmethod
     def load(cls, path: str | Path | None) -> TopicMap:
@@ -40,7 +41,14 @@ class TopicMap:
         unknown = sorted(set(raw) - known)
         if unknown:
             raise AdlError(f"{path}: unknown topic-map keys {unknown}; known keys: {sorted(known)}")
+        for f in fields(cls):
+            if f.name in raw:
+                _check_value(path, f.name, raw[f.name], f.type)
         return cls(**raw)
+
+    def __post_init__(self) -> None:
+        if not self.image or not self.camera_info or not self.tf:
+            raise AdlError("topic map: image, camera_info and tf are required and cannot be null")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -50,3 +58,19 @@ class TopicMap:
 
     def optional_topics(self) -> list[str]:
         return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static) if t]
+
+
+def _check_value(path: object, key: str, value: object, annotation: str) -> None:
+    """One line naming the key when a YAML value has the wrong type (a number for a topic, a word for a number)."""
+    optional = "None" in str(annotation)
+    if value is None:
+        if not optional:
+            raise AdlError(f"{path}: topic-map key {key!r} cannot be null")
+        return
+    if "float" in str(annotation):
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value == value or value < 0:
+            raise AdlError(f"{path}: topic-map key {key!r} must be a non-negative number of seconds, got {value!r}")
+    elif not isinstance(value, str) or not value.strip():
+        raise AdlError(f"{path}: topic-map key {key!r} must be a topic or frame name (text), got {value!r}")
+    elif any(ord(c) < 32 for c in value):
+        raise AdlError(f"{path}: topic-map key {key!r} has control characters")

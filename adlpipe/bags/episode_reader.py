@@ -1,0 +1,205 @@
+"""Reads what an episode needs from one bag, streaming: the first camera frame and its camera info, the depth and
+affordance images nearest it, the whole tf tree over time, joint states and the task name.
+
+Only messages on topics of the topic map are decoded, images only when they may be kept, so memory stays flat in
+bag length. Every optional topic of the map may be absent from the bag or set to null; a message whose definition
+lacks a field the ingest needs is one clear error naming the topic and the field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import AdlError
+from ..geometry import TfBuffer, pose_matrix
+from .images import DEPTH_TYPES, decode_image
+from .reader import BagSource, TopicInfo
+from .topics import TopicMap
+
+IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}
+TF_TYPES = {"tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"}  # tf/tfMessage: old ROS1 bags, same layout
+
+
+@dataclass
+class BagReadout:
+    """What one bag says about an episode, before any geometry."""
+
+    bag: Path
+    kind: str
+    topics: dict[str, TopicInfo]
+    image: np.ndarray
+    t_img: float
+    camera_frame: str
+    info: object
+    task: str | None
+    tf: TfBuffer
+    depth: tuple[float, object] | None = None  # (stamp, message) nearest the first image
+    affordance: tuple[float, object] | None = None
+    first_pose: dict[str, tuple[float, str, np.ndarray]] = field(default_factory=dict)  # child -> (t, parent, T)
+    joint_t: list[float] = field(default_factory=list)
+    joint_pos: list[np.ndarray] = field(default_factory=list)
+    joint_names: list[str] = field(default_factory=list)
+    read: dict[str, int] = field(default_factory=dict)
+
+
+def stamp_s(msg: object) -> float:
+    """header.stamp in seconds (ROS2 sec/nanosec, ROS1 secs/nsecs)."""
+    st = msg.header.stamp
+    sec = getattr(st, "sec", None)
+    if sec is None:
+        sec = st.secs
+    nsec = getattr(st, "nanosec", None)
+    if nsec is None:
+        nsec = st.nsecs
+    return int(sec) + int(nsec) * 1e-9
+
+
+def check_name(name: str, what: str, where: str) -> str:
+    """Frame, joint and object names end up as HDF5 strings: no control characters (NUL among them)."""
+    if any(ord(c) < 32 for c in name) or len(name) > 256:
+        raise AdlError(f"{where}: {what} {name[:40]!r} has control characters or is too long")
+    return name
+
+
+class _Nearest:
+    """Keeps the message whose stamp is nearest a reference time (set once the first image arrives)."""
+
+    def __init__(self) -> None:
+        self.best: tuple[float, float, object] | None = None  # (|dt|, stamp, msg)
+        self.pending: list[tuple[float, object]] = []  # before the reference is known (bounded below)
+
+    def offer(self, t: float, msg: object, ref: float | None) -> None:
+        if ref is None:
+            self.pending.append((t, msg))
+            del self.pending[:-4]  # memory stays flat: only the latest few before the first image
+            return
+        for tp, mp in self.pending:
+            self._consider(tp, mp, ref)
+        self.pending.clear()
+        self._consider(t, msg, ref)
+
+    def _consider(self, t: float, msg: object, ref: float) -> None:
+        if self.best is None or abs(t - ref) < self.best[0]:
+            self.best = (abs(t - ref), t, msg)
+
+    def finish(self, ref: float) -> tuple[float, object] | None:
+        for tp, mp in self.pending:
+            self._consider(tp, mp, ref)
+        return (self.best[1], self.best[2]) if self.best else None
+
+
+def check_types(bag: Path, topics: dict, tm: TopicMap) -> None:
+    want = {tm.image: IMAGE_TYPES, tm.camera_info: {"sensor_msgs/msg/CameraInfo"},
+            tm.tf: TF_TYPES, tm.tf_static: TF_TYPES,
+            tm.depth: DEPTH_TYPES, tm.affordance: {"sensor_msgs/msg/Image"},
+            tm.joints: {"sensor_msgs/msg/JointState"}, tm.task: {"std_msgs/msg/String"}}
+    for topic, types in want.items():
+        if topic and topic in topics and topics[topic].msgtype not in types | {"?"}:
+            expected = " or ".join(sorted(types))
+            raise AdlError(f"{bag}: topic {topic} has type {topics[topic].msgtype}, expected {expected}")
+
+
+def check_counts(bag: Path, topics: dict, read: dict[str, int]) -> None:
+    """Compare messages read with the bag's own counts: a reader that silently yields nothing (e.g. a rosbag2
+    QoS mismatch) must not pass as an empty topic."""
+    for topic, n in read.items():
+        declared = topics[topic].declared
+        if declared is not None and n != declared:
+            raise AdlError(f"{bag}: read {n} of the {declared} messages the bag declares on {topic}")
+
+
+def read_bag(src: BagSource, tm: TopicMap) -> BagReadout:
+    """Stream the topics of the map once and keep what an episode needs."""
+    bag = src.path
+    topics = src.topics()
+    missing = [t for t in tm.required_topics() if t not in topics]
+    if missing:
+        have = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(topics.items())) or "no topics"
+        raise AdlError(f"{bag}: missing required topic(s) {', '.join(missing)}; the bag has: {have}")
+    check_types(bag, topics, tm)
+    wanted = [t for t in tm.required_topics() + tm.optional_topics() if t in topics]
+    state = _Streams(bag, tm)
+    read = dict.fromkeys(wanted, 0)
+    for topic, _log_t, decode in src.messages(wanted):
+        read[topic] += 1
+        try:
+            state.take(topic, decode)
+        except (AttributeError, TypeError, ValueError, IndexError) as exc:
+            raise AdlError(f"{bag}: topic {topic}: message lacks a field or holds a bad value "
+                           f"({type(exc).__name__}: {' '.join(str(exc).split())[:120]})") from None
+    if state.image is None or state.t_img is None:
+        raise AdlError(f"{bag}: no message could be read on the image topic {tm.image}")
+    if state.info is None:
+        raise AdlError(f"{bag}: no message on the camera-info topic {tm.camera_info}")
+    return BagReadout(
+        bag=bag, kind=src.kind, topics=topics, image=state.image, t_img=state.t_img,
+        camera_frame=state.camera_frame, info=state.info, task=state.task, tf=state.tf,
+        depth=state.depth.finish(state.t_img) if tm.depth in topics else None,
+        affordance=state.aff.finish(state.t_img) if tm.affordance in topics else None,
+        first_pose=state.first_pose, joint_t=state.joint_t, joint_pos=state.joint_pos,
+        joint_names=state.joint_names, read=read)
+
+
+class _Streams:
+    """The state of one pass over a bag's messages."""
+
+    def __init__(self, bag: Path, tm: TopicMap) -> None:
+        self.bag, self.tm = bag, tm
+        self.image: np.ndarray | None = None
+        self.t_img: float | None = None
+        self.camera_frame = ""
+        self.info: object | None = None
+        self.task: str | None = None
+        self.depth, self.aff = _Nearest(), _Nearest()
+        self.settled: set[str] = set()  # depth/affordance topics whose stamps have passed the first image
+        self.tf = TfBuffer()
+        self.first_pose: dict[str, tuple[float, str, np.ndarray]] = {}
+        self.joint_t: list[float] = []
+        self.joint_pos: list[np.ndarray] = []
+        self.joint_names: list[str] = []
+
+    def where(self, topic: str) -> str:
+        return f"{self.bag}: topic {topic}"
+
+    def take(self, topic: str, decode: object) -> None:
+        tm = self.tm
+        if topic == tm.image:
+            if self.image is None:
+                msg = decode()
+                self.image, self.t_img = decode_image(msg, self.where(topic)), stamp_s(msg)
+                self.camera_frame = check_name(str(msg.header.frame_id), "frame", self.where(topic))
+        elif topic == tm.camera_info:
+            if self.info is None:
+                self.info = decode()
+        elif topic in (tm.depth, tm.affordance):
+            if topic not in self.settled:
+                msg = decode()
+                t = stamp_s(msg)
+                (self.depth if topic == tm.depth else self.aff).offer(t, msg, self.t_img)
+                if self.t_img is not None and t > self.t_img + tm.sync_tolerance_s:
+                    self.settled.add(topic)
+        elif topic in (tm.tf, tm.tf_static):
+            self._tf(decode().transforms, static=topic == tm.tf_static, where=self.where(topic))
+        elif topic == tm.joints:
+            msg = decode()
+            pos = np.asarray(msg.position, float)
+            if not self.joint_names:
+                self.joint_names = [check_name(str(n), "joint", self.where(topic)) for n in msg.name]
+            if len(pos) == len(self.joint_names) and len(pos):
+                self.joint_t.append(stamp_s(msg))
+                self.joint_pos.append(pos)
+        elif topic == tm.task and self.task is None:
+            self.task = str(decode().data)
+
+    def _tf(self, transforms: list, static: bool, where: str) -> None:
+        for tr in transforms:
+            tt, rr = tr.transform.translation, tr.transform.rotation
+            T = pose_matrix([tt.x, tt.y, tt.z], [rr.w, rr.x, rr.y, rr.z])
+            child = check_name(str(tr.child_frame_id).lstrip("/"), "frame", where)
+            parent = check_name(str(tr.header.frame_id).lstrip("/"), "frame", where)
+            t = stamp_s(tr)
+            self.tf.add(parent, child, t, T, static=static)
+            self.first_pose.setdefault(child, (t, parent, T))
