@@ -271,7 +271,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("-o", "--output", type=Path, help="HDF5 file to create or extend (required unless --list)")
     p.add_argument("--list", action="store_true",
                    help="print each bag's topics, types, declared and read message counts; write nothing")
-    p.add_argument("--config", type=Path, help="topic map YAML (keys of adlpipe.bags.topics.TopicMap)")
+    p.add_argument("--config", type=Path, action="append",
+                   help="topic map YAML (keys of adlpipe.bags.topics.TopicMap); repeat it to combine, later ones "
+                   "override: --config pipelines/presets/azure_kinect.yaml --config pipelines/presets/kinova_gen3.yaml")
     p.add_argument("--waypoints", type=int_range(2, 4096), default=32, help="waypoints per trajectory (default 32)")
     p.add_argument("--size", type=int_range(8, 4096), default=224, help="stored image width and height (default 224)")
     p.add_argument("--task", help="task name for bags without a task topic")
@@ -346,6 +348,7 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
               "errors": errors, "notes": notes}
     if not new:
         return counts  # nothing to add: the file stays exactly as it was
+    output.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(output)
     check_free_space(output, new.values())
     with atomic_path(output) as tmp:

@@ -28,13 +28,21 @@ class TopicMap:
     max_tf_gap_s: float = 0.2  # a longer gap in the end-effector tf is an error (or, with --allow-tf-gaps, a note)
 
     @classmethod
-    def load(cls, path: str | Path | None) -> TopicMap:
-        if path is None:
+    def load(cls, paths: str | Path | list | None) -> TopicMap:
+        """The defaults, overridden by each YAML in turn (a camera preset, then a robot preset, then your own)."""
+        if paths is None or paths == []:
             return cls()
+        merged: dict = {}
+        for path in paths if isinstance(paths, list | tuple) else [paths]:
+            merged.update(cls._read(path))
+        return cls(**merged)
+
+    @classmethod
+    def _read(cls, path: str | Path) -> dict:
         try:
             raw = yaml.safe_load(Path(path).read_text()) or {}
-        except (OSError, yaml.YAMLError) as exc:
-            raise AdlError(f"{path}: cannot read topic map: {exc}") from exc
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+            raise AdlError(f"{path}: cannot read topic map: {' '.join(str(exc).split())}") from exc
         if not isinstance(raw, dict):
             raise AdlError(f"{path}: topic map must be a mapping of keys to topics")
         known = {f.name for f in fields(cls)}
@@ -44,7 +52,7 @@ class TopicMap:
         for f in fields(cls):
             if f.name in raw:
                 _check_value(path, f.name, raw[f.name], f.type)
-        return cls(**raw)
+        return raw
 
     def __post_init__(self) -> None:
         if not self.image or not self.camera_info or not self.tf:

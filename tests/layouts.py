@@ -1,0 +1,151 @@
+"""Bags laid out as real robots and cameras publish them, written with the real writers (mcap, rosbags) through
+adlpipe's BagWriter: a Kinova Gen3 arm (a moving chain ending in bracelet_link, with end_effector_link and
+tool_frame on /tf_static), an Azure Kinect, RealSense or ZED camera, namespaced joint states, compressedDepth.
+
+The ground truth is returned beside the bag: where the end-effector frame really was at every tf stamp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from adlpipe.bags import messages as M
+from adlpipe.bags.images import encode_compressed_depth
+from adlpipe.bags.writer import BagWriter
+from adlpipe.geometry import matrix_to_quat, pose_matrix
+
+CAMERAS = {  # driver topic names
+    "azure_kinect": dict(image="/rgb/image_raw", camera_info="/rgb/camera_info", depth="/depth_to_rgb/image_raw",
+                         frame="rgb_camera_link"),
+    "realsense": dict(image="/camera/camera/color/image_raw", camera_info="/camera/camera/color/camera_info",
+                      depth="/camera/camera/aligned_depth_to_color/image_raw", frame="camera_color_optical_frame"),
+    "zed": dict(image="/zed/zed_node/rgb/image_rect_color", camera_info="/zed/zed_node/rgb/camera_info",
+                depth="/zed/zed_node/depth/depth_registered", frame="zed_left_camera_optical_frame"),
+}
+ROBOTS = {  # (base, moving chain, static chain to the end effector, joint-state topic)
+    "kinova_gen3": dict(base="base_link", moving=["shoulder_link", "bracelet_link"],
+                        static=[("end_effector_link", 0.0615), ("tool_frame", 0.18)], joints="/my_gen3/joint_states"),
+    "franka": dict(base="fr3_link0", moving=["fr3_link1", "fr3_link8"], static=[("fr3_hand", 0.0),
+                                                                              ("fr3_hand_tcp", 0.1034)],
+                   joints="/joint_states"),
+    "ur": dict(base="base_link", moving=["shoulder_link", "wrist_3_link"], static=[("flange", 0.0), ("tool0", 0.0)],
+               joints="/joint_states"),
+}
+
+
+@dataclass
+class Layout:
+    camera: str = "azure_kinect"
+    robot: str = "kinova_gen3"
+    fmt: str = "mcap"
+    depth: str | None = "16UC1"  # 16UC1 | 32FC1 | compressed16 | compressed32 | rvl16 | None
+    joints: bool = True
+    task: str | None = "wipe the table"
+    duration_s: float = 3.0
+    tf_gap: tuple[float, float] | None = None  # (start, end) seconds with no moving tf
+    size: tuple[int, int] = (64, 48)  # width, height
+    extra: dict = field(default_factory=dict)
+
+
+def _moving(t: float) -> list[np.ndarray]:
+    """Poses of the moving chain at time t: a yawing shoulder and a bracelet sweeping and tilting."""
+    yaw = 0.4 * np.sin(0.8 * t)
+    a = pose_matrix([0, 0, 0.28], [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)])
+    tilt = 0.3 * t
+    b = pose_matrix([0.45 + 0.05 * np.sin(t), 0.1 * t, 0.2],
+                    [np.cos((np.pi + tilt) / 2), np.sin((np.pi + tilt) / 2), 0, 0])  # pointing down, tilting
+    return [a, b]
+
+
+def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndarray]:
+    """Write the bag; returns (path, ee stamps in s from the first image, true ee positions in the base frame)."""
+    cam, robot = CAMERAS[lay.camera], ROBOTS[lay.robot]
+    w = BagWriter(path, lay.fmt)
+    f = w.msgs
+    t0 = 1_767_225_600 * 10**9
+    ns = lambda t: t0 + int(round(t * 1e9))  # noqa: E731
+    width, height = lay.size
+    K = np.array([[50.0, 0, (width - 1) / 2], [0, 50.0, (height - 1) / 2], [0, 0, 1]])
+    events: list[tuple[int, int, str, str, object]] = []
+    cam_pose = (np.array([0.9, -0.5, 0.9]), matrix_to_quat(np.array([[0, -1, 0], [-0.6, 0, -0.8], [0.8, 0, -0.6]])))
+    statics = [(robot["base"], "camera_base", cam_pose[0], cam_pose[1]),
+               ("camera_base", cam["frame"], np.zeros(3), np.array([1.0, 0, 0, 0]))]
+    parent = robot["moving"][-1]
+    for child, dz in robot["static"]:
+        statics.append((parent, child, np.array([0.0, 0.0, dz]), np.array([1.0, 0, 0, 0])))
+        parent = child
+    events.append((ns(0), 0, "/tf_static", M.TF, lambda: f.tf(ns(0), statics)))
+    if lay.task:
+        events.append((ns(0), 1, "/task", M.STRING, lambda: f.string(lay.task)))
+    rng = np.random.default_rng(0)
+    for k in range(int(lay.duration_s * 10) + 1):  # camera at 10 Hz
+        t = k / 10
+        tn = ns(t)
+        rgb = rng.integers(0, 255, (height, width, 3), dtype=np.uint8)
+        events.append((tn, 2, cam["camera_info"], M.CAMERA_INFO,
+                       lambda tn=tn: f.camera_info(tn, cam["frame"], K, width, height)))
+        events.append((tn, 3, cam["image"], M.IMAGE, lambda tn=tn, rgb=rgb: f.image(tn, cam["frame"], rgb, "rgb8")))
+        if lay.depth:
+            d = np.full((height, width), 1.5, np.float32) + np.linspace(0, 1, width, dtype=np.float32)
+            d[:4] = np.nan  # no return
+            events.append(_depth_event(f, lay.depth, cam, tn, d))
+    ee_t, ee_p = [], []
+    for k in range(int(lay.duration_s * 50) + 1):  # moving tf at 50 Hz
+        t = k / 50
+        if lay.tf_gap and lay.tf_gap[0] < t < lay.tf_gap[1]:
+            continue
+        tn = ns(t)
+        chain = _moving(t)
+        names = [robot["base"], *robot["moving"]]
+        tfs = [(names[i], names[i + 1], T[:3, 3], matrix_to_quat(T[:3, :3])) for i, T in enumerate(chain)]
+        events.append((tn, 4, "/tf", M.TF, lambda tn=tn, tfs=tfs: f.tf(tn, tfs)))
+        T = chain[0] @ chain[1]
+        for _child, dz in robot["static"]:
+            T = T @ pose_matrix([0, 0, dz], [1, 0, 0, 0])
+        ee_t.append(t)
+        ee_p.append(T[:3, 3])
+    if lay.joints:
+        names = [f"joint_{i}" for i in range(1, 8)]
+        for k in range(int(lay.duration_s * 100) + 1):
+            tn = ns(k / 100)
+            q = np.sin(np.arange(7) + k / 100)
+            events.append((tn, 5, robot["joints"], M.JOINT_STATE,
+                           lambda tn=tn, q=q: f.joint_state(tn, names, q, np.zeros(7))))
+    events.sort(key=lambda e: (e[0], e[1]))
+    try:
+        for tn, _, topic, msgtype, build in events:
+            w.write(topic, msgtype, tn, build())
+        return w.close(), np.array(ee_t), np.array(ee_p)
+    except BaseException:
+        w.abort()
+        raise
+
+
+def _depth_event(f: M.MessageFactory, kind: str, cam: dict, tn: int, d: np.ndarray) -> tuple:
+    if kind == "16UC1":
+        raw = np.clip(np.round(np.nan_to_num(d) * 1000), 0, 65535).astype(np.uint16)
+        return (tn, 3, cam["depth"], M.IMAGE, lambda: f.image(tn, cam["frame"], raw, "16UC1"))
+    if kind == "32FC1":
+        return (tn, 3, cam["depth"], M.IMAGE, lambda: f.image(tn, cam["frame"], d, "32FC1"))
+    encoding = "16UC1" if kind.endswith("16") else "32FC1"
+    fmt, data = encode_compressed_depth(d, encoding, "rvl" if kind.startswith("rvl") else "png")
+
+    def build() -> object:
+        return f.T[M.COMPRESSED](header=f.header(tn, cam["frame"]), format=fmt, data=np.frombuffer(data, np.uint8))
+
+    return (tn, 3, cam["depth"] + "/compressedDepth", M.COMPRESSED, build)
+
+
+def topic_map(lay: Layout, **over: object) -> dict:
+    """The topic-map YAML content for this layout."""
+    cam, robot = CAMERAS[lay.camera], ROBOTS[lay.robot]
+    depth = None
+    if lay.depth:
+        depth = cam["depth"] + ("/compressedDepth" if lay.depth.startswith(("compressed", "rvl")) else "")
+    out = dict(image=cam["image"], camera_info=cam["camera_info"], depth=depth, affordance=None,
+               joints=robot["joints"], task="/task", base_frame=robot["base"], ee_frame=robot["static"][-1][0])
+    out.update(over)
+    return out
