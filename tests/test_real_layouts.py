@@ -147,3 +147,46 @@ def test_a_topic_map_with_wrong_types_is_one_line(tmp_path: Path, content: str, 
     cfg.write_text(content)
     line = one_line_error(run_module("ingest", tmp_path / "none.mcap", "-o", tmp_path / "x.h5", "--config", cfg))
     assert needle in line
+
+
+def test_a_foxy_era_rosbag2_with_old_type_names_reads(tmp_path: Path) -> None:
+    """metadata.yaml and the db3 topics table name types 'sensor_msgs/Image' (no /msg/), as older rosbag2 wrote."""
+    import re
+    import sqlite3
+
+    lay = Layout(fmt="db3", duration_s=1.0)
+    bag, ee_t, ee_p = write_layout_bag(tmp_path / "old", lay)
+    old = lambda text: re.sub(r"(\w+)/msg/(\w+)", r"\1/\2", text)  # noqa: E731
+    meta = bag / "metadata.yaml"
+    meta.write_text(old(meta.read_text()))
+    con = sqlite3.connect(next(bag.glob("*.db3")))
+    for i, ty in con.execute("select id, type from topics").fetchall():
+        con.execute("update topics set type=? where id=?", (old(ty), i))
+    con.commit()
+    con.close()
+    assert "sensor_msgs/Image" in meta.read_text()
+    ep = _ingest(bag, tmp_path, TopicMap(**topic_map(lay)))
+    assert np.linalg.norm(ep.traj3d - _expected_path(ee_t, ee_p, ep), axis=1).max() < 1e-3
+
+
+def test_a_compressed_rosbag2_split_given_as_a_bare_file_says_so(tmp_path: Path) -> None:
+    """rosbag2 with MCAP storage and per-message zstd: the folder ingests; its .mcap alone is one clear line."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+    lay = Layout(fmt="db3", duration_s=1.0)
+    src, _t, _p = write_layout_bag(tmp_path / "src", lay)
+    dst = tmp_path / "split"
+    writer = Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+    with AnyReader([src]) as reader, writer:
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=reader.typestore)
+                 for c in reader.connections}
+        for c, t, raw in reader.messages():
+            writer.write(conns[c.id], t, raw)
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(yaml.safe_dump(topic_map(lay)))
+    run_module("ingest", dst, "-o", tmp_path / "ok.h5", "--config", cfg, "--size", "48", check=True)
+    bare = next(dst.glob("*.mcap"))
+    line = one_line_error(run_module("ingest", bare, "-o", tmp_path / "x.h5", "--config", cfg, "--size", "48"))
+    assert "compressed rosbag2 split" in line and "give its folder" in line

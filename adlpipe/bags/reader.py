@@ -12,6 +12,7 @@ from pathlib import Path
 from ..errors import AdlError
 from .messages import typestore
 
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 COUNTS_METADATA = "adlpipe.message_counts"  # MCAP metadata record: topic -> message count, written first
 
 
@@ -174,6 +175,9 @@ class BagSource:
                 raise AdlError(f"{self.path}: topic {channel.topic}: no decoder for message type {name} "
                                f"(encoding {channel.message_encoding!r})")
             cache[key] = decoder
+        if message.data[:4] == ZSTD_MAGIC:  # rosbag2 'message' compression: each payload zstd-compressed
+            raise AdlError(f"{self.path}: a compressed rosbag2 split (each message zstd-compressed); give its folder, "
+                           "with metadata.yaml, instead of the bare .mcap file")
         return cache[key](message.data)
 
     def _mcap_messages(self, topics: list[str]) -> Iterator[tuple[str, int, object]]:
@@ -245,4 +249,6 @@ class BagSource:
         with self._any_reader() as reader:
             conns = [c for c in reader.connections if c.topic in set(topics)]
             for conn, t, raw in reader.messages(connections=conns):
-                yield conn.topic, t, self._guard(conn.topic, partial(reader.deserialize, raw, conn.msgtype))
+                # Foxy-era metadata names types without /msg/ ('sensor_msgs/Image'): decode as the standard type
+                msgtype = _normalise_type(conn.msgtype)
+                yield conn.topic, t, self._guard(conn.topic, partial(reader.deserialize, raw, msgtype))
