@@ -34,6 +34,7 @@ from .atomic import atomic_path, check_outputs
 from .bags.episode_reader import BagReadout, check_counts, read_bag
 from .bags.images import decode_depth, decode_image
 from .bags.reader import BagSource
+from .bags.survey import list_lines, suggest_config, survey
 from .bags.topics import TopicMap
 from .cli import Parser, int_range
 from .errors import AdlError, run_cli
@@ -75,17 +76,6 @@ def recovery_note(src: BagSource, read: dict[str, int]) -> str:
     per_topic = ", ".join(f"{t} {n}" for t, n in sorted(lost.items())) or "none"
     return (f"recovered {got} of {sum(held.values())} messages from a damaged MCAP: lost {sum(lost.values())} "
             f"({per_topic})")
-
-
-def list_topics(bag: Path) -> list[tuple[str, str, int | None, int]]:
-    """(topic, type, declared count, messages actually read) for every topic: what `--list` prints."""
-    src = BagSource(bag)
-    topics = src.topics()
-    read = dict.fromkeys(topics, 0)
-    for topic, _t, decode in src.messages(list(topics)):
-        decode()  # a message that does not decode is a bad bag, not a count
-        read[topic] += 1
-    return [(t, i.msgtype, i.declared, read[t]) for t, i in sorted(topics.items())]
 
 
 def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_override: str | None = None,
@@ -270,7 +260,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("bags", nargs="+", type=Path, help=".mcap / .bag files, rosbag2 folders or .db3 files")
     p.add_argument("-o", "--output", type=Path, help="HDF5 file to create or extend (required unless --list)")
     p.add_argument("--list", action="store_true",
-                   help="print each bag's topics, types, declared and read message counts; write nothing")
+                   help="print each bag's topics: type, declared and read counts, rate, largest gap between "
+                   "messages and the offset of header.stamp from log time; write nothing")
+    p.add_argument("--suggest-config", action="store_true",
+                   help="print a topic-map YAML guessed from the (first) bag, with comments; write nothing")
     p.add_argument("--config", type=Path, action="append",
                    help="topic map YAML (keys of adlpipe.bags.topics.TopicMap); repeat it to combine, later ones "
                    "override: --config pipelines/presets/azure_kinect.yaml --config pipelines/presets/kinova_gen3.yaml")
@@ -286,7 +279,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--recover", action="store_true",
                    help="read what is complete in a truncated MCAP and report what was lost")
     args = p.parse_args(argv)
-    if not args.list and args.output is None:
+    if not (args.list or args.suggest_config) and args.output is None:
         p.error("the following arguments are required: -o/--output")
     return args
 
@@ -377,14 +370,15 @@ def check_free_space(output: Path, episodes: object) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.suggest_config:
+        print(suggest_config(survey(args.bags[0])), end="")
+        return 0
     if args.list:
         bad = 0
         for bag in args.bags:
-            print(f"{bag}:")
-            for topic, msgtype, declared, n in list_topics(bag):
-                flag = "" if declared in (None, n) else "   <-- count mismatch"
-                bad += bool(flag)
-                print(f"  {topic:40s} {msgtype:40s} declared {declared!s:>6} read {n:>6}{flag}")
+            s = survey(bag)
+            print("\n".join(list_lines(s)))
+            bad += sum(t.declared not in (None, t.read) for t in s.topics.values())
         return 1 if bad else 0
     tm = TopicMap.load(args.config)
     check_outputs(args.output)

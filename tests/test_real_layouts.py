@@ -190,3 +190,33 @@ def test_a_compressed_rosbag2_split_given_as_a_bare_file_says_so(tmp_path: Path)
     bare = next(dst.glob("*.mcap"))
     line = one_line_error(run_module("ingest", bare, "-o", tmp_path / "x.h5", "--config", cfg, "--size", "48"))
     assert "compressed rosbag2 split" in line and "give its folder" in line
+
+
+@pytest.mark.parametrize(("camera", "robot"), [("azure_kinect", "kinova_gen3"), ("realsense", "franka"),
+                                               ("zed", "ur")])
+def test_the_suggested_config_ingests_a_new_robots_bag(tmp_path: Path, camera: str, robot: str) -> None:
+    """The first hour with a new robot: --suggest-config guesses the map, and that map ingests the bag."""
+    lay = Layout(camera=camera, robot=robot, depth="compressed16" if camera == "azure_kinect" else "32FC1")
+    bag, ee_t, ee_p = write_layout_bag(tmp_path / "new.mcap", lay)
+    proc = run_module("ingest", "--suggest-config", bag, check=True)
+    guessed = yaml.safe_load(proc.stdout)
+    want = topic_map(lay)
+    for key in ("image", "camera_info", "depth", "joints", "base_frame", "ee_frame"):
+        assert guessed[key] == want[key], (key, proc.stdout)
+    assert "# end-effector candidates" in proc.stdout and "is connected to the base" in proc.stdout
+    cfg = tmp_path / "guessed.yaml"
+    cfg.write_text(proc.stdout)
+    run_module("ingest", bag, "-o", tmp_path / "x.h5", "--config", cfg, "--size", "48", check=True)
+    with h5py.File(tmp_path / "x.h5") as f:
+        ep = schema.read_episode(f, schema.episode_names(f)[0])
+    assert np.linalg.norm(ep.traj3d - _expected_path(ee_t, ee_p, ep), axis=1).max() < 1e-3
+
+
+def test_list_audits_rates_gaps_and_stamp_offsets(tmp_path: Path) -> None:
+    bag, _t, _p = write_layout_bag(tmp_path / "a.mcap", Layout(tf_gap=(1.0, 2.0), duration_s=3.0))
+    out = run_module("ingest", "--list", bag, check=True).stdout
+    rows = {ln.split()[0]: ln.split() for ln in out.splitlines()[2:]}
+    tf = rows["/tf"]  # topic type declared N read N rate gap offset
+    assert tf[3] == tf[5] and abs(float(tf[6]) - 50 * 101 / 151) < 2  # 101 stamps over 3 s, the hole
+    assert abs(float(tf[7]) - 1.0) < 1e-3 and abs(float(tf[8])) < 1e-6  # the hole; stamps = log times here
+    assert abs(float(rows["/rgb/image_raw"][6]) - 10.0) < 0.01
