@@ -34,6 +34,7 @@ from .atomic import atomic_path, check_outputs
 from .bags.episode_reader import BagReadout, check_counts, read_bag
 from .bags.images import decode_depth, decode_image
 from .bags.reader import BagSource
+from .bags.segments import find_segments
 from .bags.survey import list_lines, suggest_config, survey
 from .bags.topics import TopicMap
 from .cli import Parser, int_range
@@ -79,11 +80,12 @@ def recovery_note(src: BagSource, read: dict[str, int]) -> str:
 
 
 def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_override: str | None = None,
-                    recover: bool = False, sha: str | None = None,
-                    allow_tf_gaps: bool = False) -> tuple[schema.Episode, str]:
-    """Read one bag into an Episode; returns it with a note (recovery losses, bridged tf gaps)."""
+                    recover: bool = False, sha: str | None = None, allow_tf_gaps: bool = False,
+                    window: tuple[int, int] | None = None, segment: int = -1) -> tuple[schema.Episode, str]:
+    """Read one bag (or one demonstration of it: `window`, log time ns) into an Episode; returns it with a note
+    (recovery losses, bridged tf gaps)."""
     src = BagSource(bag, recover=recover)
-    r = read_bag(src, tm)
+    r = read_bag(src, tm, window)
     notes = []
     if recover and src.damaged:
         notes.append(recovery_note(src, r.read))
@@ -125,7 +127,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         objects=np.array(poses).reshape(-1, 7), ee_t=ee_t, ee_pos=ee_p,
         joint_t=np.asarray(r.joint_t, float) - r.t_img,
         joint_pos=np.asarray(r.joint_pos, float).reshape(len(r.joint_t), n_joints),
-        joint_names=r.joint_names if n_joints else [], note="; ".join(notes),
+        joint_names=r.joint_names if n_joints else [], note="; ".join(notes), segment=segment,
     )
     return ep, ep.note
 
@@ -237,22 +239,28 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _worker(job: tuple) -> tuple[str, schema.Episode | None, str, str | None]:
-    """(bag, episode or None if already ingested, note, error line or None). Runs in a pool process."""
-    bag, tm, n, size, task, recover, known, allow_gaps = job
+def _worker(job: tuple) -> tuple[str, list[schema.Episode], str, str | None]:
+    """(bag, its episodes (none if already ingested), note, error line or None). Runs in a pool process."""
+    bag, tm, n, size, task, recover, known, allow_gaps, segments_file = job
     try:
         check_bag_path(Path(bag))
         sha = sha256_of(Path(bag)) if Path(bag).exists() else None
-        if sha is not None and sha in known:
-            return bag, None, "already ingested", None
-        ep, note = extract_episode(Path(bag), tm, n, size, task, recover, sha, allow_gaps)
-        return bag, ep, note, None
+        if sha is not None and sha in {k.split("#")[0] for k in known}:
+            return bag, [], "already ingested", None
+        windows = find_segments(Path(bag), tm, segments_file) if not recover else None
+        if windows is None:
+            ep, note = extract_episode(Path(bag), tm, n, size, task, recover, sha, allow_gaps)
+            return bag, [ep], note, None
+        eps = [extract_episode(Path(bag), tm, n, size, task, recover, sha, allow_gaps, w, k)[0]
+               for k, w in enumerate(windows)]
+        notes = "; ".join(f"segment {ep.segment}: {ep.note}" for ep in eps if ep.note)
+        return bag, eps, f"{len(eps)} demonstrations" + (f" ({notes})" if notes else ""), None
     except AdlError as exc:
-        return bag, None, "", str(exc)
+        return bag, [], "", str(exc)
     except MemoryError:
-        return bag, None, "", f"{bag}: out of memory while reading the bag"
+        return bag, [], "", f"{bag}: out of memory while reading the bag"
     except Exception as exc:  # noqa: BLE001 - one bag's unforeseen failure must not take the batch down
-        return bag, None, "", f"{bag}: cannot ingest ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
+        return bag, [], "", f"{bag}: cannot ingest ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -276,6 +284,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--allow-tf-gaps", action="store_true",
                    help="keep a bag whose end-effector tf has a gap over max_tf_gap_s, with a note, instead of "
                    "refusing it")
+    p.add_argument("--segments", type=Path,
+                   help="segments YAML for a bag holding several demonstrations (default: <bag>.segments.yaml "
+                   "beside it, if there)")
     p.add_argument("--recover", action="store_true",
                    help="read what is complete in a truncated MCAP and report what was lost")
     args = p.parse_args(argv)
@@ -300,17 +311,17 @@ def remove_stale_temps(output: Path) -> None:
 
 def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, size: int = 224,
            task: str | None = None, workers: int = 1, skip_bad: bool = False, recover: bool = False,
-           progress: bool = False, allow_tf_gaps: bool = False) -> dict:
+           progress: bool = False, allow_tf_gaps: bool = False, segments: Path | None = None) -> dict:
     """Ingest bags into `output` atomically. Returns counts; raises AdlError (output untouched) on a bad bag."""
     known: set[str] = set()
     if output.exists():
         try:
             with h5py.File(output, "r") as f:
                 schema.check_file(f, str(output), n_waypoints, size)
-                known = schema.episode_shas(f)
+                known = schema.episode_keys(f)
         except OSError as exc:
             raise AdlError(f"{output}: existing output is not a readable HDF5 file ({exc})") from exc
-    jobs = [(str(b), tm, n_waypoints, size, task, recover, known, allow_tf_gaps) for b in bags]
+    jobs = [(str(b), tm, n_waypoints, size, task, recover, known, allow_tf_gaps, segments) for b in bags]
     results = []
     if workers > 1 and len(jobs) > 1:
         pool = ProcessPoolExecutor(max_workers=workers, initializer=_ignore_sigint)
@@ -333,12 +344,13 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
         more = f" (and {len(errors) - 1} more bad bag(s))" if len(errors) > 1 else ""
         raise AdlError(errors[0] + more)
     new = {}
-    for _bag, ep, _note, _err in results:
-        if ep is not None and ep.source_sha256 not in known:
-            new.setdefault(ep.source_sha256, ep)  # the same bag given twice is ingested once
-    notes = [f"{b}: {n}" for b, ep, n, _ in results if n and ep is not None]
-    counts = {"new": len(new), "skipped": len(results) - len(new) - len(errors), "bad": len(errors),
-              "errors": errors, "notes": notes}
+    for _bag, eps, _note, _err in results:
+        for ep in eps:
+            if ep.key not in known:
+                new.setdefault(ep.key, ep)  # the same bag given twice is ingested once
+    notes = [f"{b}: {n}" for b, eps, n, _ in results if n and eps]
+    skipped = sum(1 for _b, eps, _n, err in results if not eps and not err)
+    counts = {"new": len(new), "skipped": skipped, "bad": len(errors), "errors": errors, "notes": notes}
     if not new:
         return counts  # nothing to add: the file stays exactly as it was
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -384,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     check_outputs(args.output)
     with exclusive(args.output):
         c = ingest(args.bags, args.output, tm, args.waypoints, args.size, args.task, args.workers, args.skip_bad,
-                   args.recover, progress=True, allow_tf_gaps=args.allow_tf_gaps)
+                   args.recover, progress=True, allow_tf_gaps=args.allow_tf_gaps, segments=args.segments)
     for note in c["notes"]:
         print(f"note: {note}", file=sys.stderr)
     for err in c["errors"]:

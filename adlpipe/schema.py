@@ -60,10 +60,16 @@ class Episode:
     joint_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     joint_names: list[str] = field(default_factory=list)
     note: str = ""  # e.g. what a --recover ingest of a truncated bag lost
+    segment: int = -1  # the demonstration's index in a bag holding several; -1: the whole bag
 
     @property
     def name(self) -> str:
-        return episode_name(self.task, self.source_sha256)
+        return episode_name(self.task, self.source_sha256, self.segment)
+
+    @property
+    def key(self) -> str:
+        """What makes an episode the same on a re-ingest: its bag's sha256 and its segment."""
+        return episode_key(self.source_sha256, self.segment)
 
 
 def safe_name(text: str, limit: int = 40) -> str:
@@ -71,8 +77,12 @@ def safe_name(text: str, limit: int = 40) -> str:
     return (re.sub(r"[^A-Za-z0-9_]+", "_", text).strip("_") or "unnamed")[:limit]
 
 
-def episode_name(task: str, sha256: str) -> str:
-    return f"{safe_name(task)}-{sha256[:16]}"
+def episode_name(task: str, sha256: str, segment: int = -1) -> str:
+    return f"{safe_name(task)}-{sha256[:16]}" + (f"-s{segment:03d}" if segment >= 0 else "")
+
+
+def episode_key(sha256: str, segment: int = -1) -> str:
+    return sha256 if segment < 0 else f"{sha256}#{segment}"
 
 
 def create_file(f: h5py.File, n_waypoints: int, image_size: int) -> None:
@@ -157,6 +167,7 @@ def write_episode(f: h5py.File, ep: Episode) -> None:
     g.attrs["has_depth"] = ep.depth is not None
     g.attrs["has_affordance"] = bool(ep.has_affordance)
     g.attrs["note"] = ep.note
+    g.attrs["segment"] = int(ep.segment)
     img = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
     g.create_dataset("rgb", data=ep.rgb.astype(np.uint8), **img)
     g.create_dataset("affordance", data=ep.affordance.astype(np.float32), **img)
@@ -190,6 +201,7 @@ def read_episode(f: h5py.File, name: str) -> Episode:
         object_names=[str(n) for n in g["objects"].attrs["names"]], objects=g["objects"][()],
         ee_t=s["ee_t"][()], ee_pos=s["ee_pos"][()], joint_t=s["joint_t"][()], joint_pos=s["joint_pos"][()],
         joint_names=[str(n) for n in s["joint_pos"].attrs["joint_names"]], note=str(a.get("note", "")),
+        segment=int(a.get("segment", -1)),
     )
 
 
@@ -197,5 +209,7 @@ def episode_names(f: h5py.File) -> list[str]:
     return sorted(f[EPISODES].keys())
 
 
-def episode_shas(f: h5py.File) -> set[str]:
-    return {str(g.attrs["source_sha256"]) for g in f[EPISODES].values()}
+def episode_keys(f: h5py.File) -> set[str]:
+    """The re-ingest keys (bag sha256, and segment) of the episodes in the file."""
+    return {episode_key(str(g.attrs["source_sha256"]), int(g.attrs.get("segment", -1)))
+            for g in f[EPISODES].values()}

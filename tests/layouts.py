@@ -7,7 +7,7 @@ The ground truth is returned beside the bag: where the end-effector frame really
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +47,9 @@ class Layout:
     duration_s: float = 3.0
     tf_gap: tuple[float, float] | None = None  # (start, end) seconds with no moving tf
     size: tuple[int, int] = (64, 48)  # width, height
-    extra: dict = field(default_factory=dict)
+    demos: int = 1  # demonstrations in the bag, each duration_s long, with pause_s of stillness after each
+    pause_s: float = 0.0
+    markers: bool = False  # std_msgs/String "start"/"stop" on /segment around each demonstration
 
 
 def _moving(t: float) -> list[np.ndarray]:
@@ -60,8 +62,15 @@ def _moving(t: float) -> list[np.ndarray]:
     return [a, b]
 
 
+def _clock(t: float, lay: Layout) -> tuple[float, int]:
+    """(motion time, demonstration index) at bag time t: the motion clock stops while the robot pauses."""
+    period = lay.duration_s + lay.pause_s
+    k = min(int(t // period), lay.demos - 1) if period > 0 else 0
+    return k * lay.duration_s + min(t - k * period, lay.duration_s), k
+
+
 def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndarray]:
-    """Write the bag; returns (path, ee stamps in s from the first image, true ee positions in the base frame)."""
+    """Write the bag; returns (path, ee stamps in s from the bag's start, true ee positions in the base frame)."""
     cam, robot = CAMERAS[lay.camera], ROBOTS[lay.robot]
     w = BagWriter(path, lay.fmt)
     f = w.msgs
@@ -81,7 +90,13 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
     if lay.task:
         events.append((ns(0), 1, "/task", M.STRING, lambda: f.string(lay.task)))
     rng = np.random.default_rng(0)
-    for k in range(int(lay.duration_s * 10) + 1):  # camera at 10 Hz
+    total = lay.demos * (lay.duration_s + lay.pause_s) - lay.pause_s
+    if lay.markers:
+        for k in range(lay.demos):
+            a = k * (lay.duration_s + lay.pause_s)
+            events.append((ns(a), 1, "/segment", M.STRING, lambda: f.string("start")))
+            events.append((ns(a + lay.duration_s), 9, "/segment", M.STRING, lambda: f.string("stop")))
+    for k in range(int(round(total * 10)) + 1):  # camera at 10 Hz
         t = k / 10
         tn = ns(t)
         rgb = rng.integers(0, 255, (height, width, 3), dtype=np.uint8)
@@ -93,12 +108,12 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
             d[:4] = np.nan  # no return
             events.append(_depth_event(f, lay.depth, cam, tn, d))
     ee_t, ee_p = [], []
-    for k in range(int(lay.duration_s * 50) + 1):  # moving tf at 50 Hz
+    for k in range(int(round(total * 50)) + 1):  # moving tf at 50 Hz
         t = k / 50
         if lay.tf_gap and lay.tf_gap[0] < t < lay.tf_gap[1]:
             continue
         tn = ns(t)
-        chain = _moving(t)
+        chain = _moving(_clock(t, lay)[0])
         names = [robot["base"], *robot["moving"]]
         tfs = [(names[i], names[i + 1], T[:3, 3], matrix_to_quat(T[:3, :3])) for i, T in enumerate(chain)]
         events.append((tn, 4, "/tf", M.TF, lambda tn=tn, tfs=tfs: f.tf(tn, tfs)))
@@ -109,7 +124,7 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
         ee_p.append(T[:3, 3])
     if lay.joints:
         names = [f"joint_{i}" for i in range(1, 8)]
-        for k in range(int(lay.duration_s * 100) + 1):
+        for k in range(int(round(total * 100)) + 1):
             tn = ns(k / 100)
             q = np.sin(np.arange(7) + k / 100)
             events.append((tn, 5, robot["joints"], M.JOINT_STATE,

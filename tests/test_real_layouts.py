@@ -220,3 +220,49 @@ def test_list_audits_rates_gaps_and_stamp_offsets(tmp_path: Path) -> None:
     assert tf[3] == tf[5] and abs(float(tf[6]) - 50 * 101 / 151) < 2  # 101 stamps over 3 s, the hole
     assert abs(float(tf[7]) - 1.0) < 1e-3 and abs(float(tf[8])) < 1e-6  # the hole; stamps = log times here
     assert abs(float(rows["/rgb/image_raw"][6]) - 10.0) < 0.01
+
+
+def _segment_truth(ee_t: np.ndarray, ee_p: np.ndarray, lay: Layout, k: int) -> np.ndarray:
+    a = k * (lay.duration_s + lay.pause_s)
+    tq = np.linspace(a, a + lay.duration_s, 32)
+    return np.stack([np.interp(tq, ee_t, ee_p[:, i]) for i in range(3)], axis=1)
+
+
+@pytest.mark.parametrize("how", ["markers", "sidecar", "motion"])
+def test_several_demonstrations_in_one_bag(tmp_path: Path, how: str) -> None:
+    lay = Layout(demos=3, duration_s=2.0, pause_s=1.5, markers=how == "markers")
+    bag, ee_t, ee_p = write_layout_bag(tmp_path / "session.mcap", lay)
+    m = topic_map(lay)
+    if how == "markers":
+        m["segment_topic"] = "/segment"
+    elif how == "motion":
+        m.update(segment_idle_s=1.0, segment_min_s=0.5)
+    else:
+        (tmp_path / "session.mcap.segments.yaml").write_text(yaml.safe_dump(
+            {"segments": [[k * 3.5, k * 3.5 + 2.0] for k in range(3)]}))
+    out = tmp_path / "x.h5"
+    tm = TopicMap(**m)
+    assert ingest([bag], out, tm, n_waypoints=32, size=48)["new"] == 3
+    with h5py.File(out) as f:
+        eps = sorted((schema.read_episode(f, n) for n in schema.episode_names(f)), key=lambda e: e.segment)
+    assert [e.segment for e in eps] == [0, 1, 2] and len({e.source_sha256 for e in eps}) == 1
+    for k, ep in enumerate(eps):
+        assert ep.name.endswith(f"-s{k:03d}")
+        truth = _segment_truth(ee_t, ee_p, lay, k)
+        tol = 1e-3 if how != "motion" else 0.01  # motion edges are found to within a tf sample (20 ms)
+        assert np.linalg.norm(ep.traj3d - truth, axis=1).max() < tol, (k, ep.duration_s)
+    before = out.read_bytes()
+    assert ingest([bag], out, tm, n_waypoints=32, size=48)["new"] == 0  # re-ingest is a no-op
+    assert out.read_bytes() == before
+
+
+def test_a_start_marker_without_stop_is_one_line(tmp_path: Path) -> None:
+    from adlpipe.bags.segments import find_segments
+
+    lay = Layout(demos=1, markers=False)
+    bag, _t, _p = write_layout_bag(tmp_path / "s.mcap", lay)
+    with pytest.raises(AdlError, match="segment_topic /segment is not in the bag"):
+        find_segments(bag, TopicMap(**topic_map(lay, segment_topic="/segment")))
+    (tmp_path / "s.mcap.segments.yaml").write_text("segments: [[2, 1]]\n")
+    with pytest.raises(AdlError, match="0 <= t0 < t1"):
+        find_segments(bag, TopicMap(**topic_map(lay)))

@@ -111,8 +111,12 @@ def check_counts(bag: Path, topics: dict, read: dict[str, int]) -> None:
             raise AdlError(f"{bag}: read {n} of the {declared} messages the bag declares on {topic}")
 
 
-def read_bag(src: BagSource, tm: TopicMap) -> BagReadout:
-    """Stream the topics of the map once and keep what an episode needs."""
+TF_LEAD_NS = 1_000_000_000  # tf before a segment's start: the poses the first image's lookups need
+
+
+def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None) -> BagReadout:
+    """Stream the topics of the map once and keep what an episode needs; with a window (log time, ns), only what
+    lies in it (one demonstration of several in the bag): static tf and the task name are kept from anywhere."""
     bag = src.path
     topics = src.topics()
     missing = [t for t in tm.required_topics() if t not in topics]
@@ -123,15 +127,20 @@ def read_bag(src: BagSource, tm: TopicMap) -> BagReadout:
     wanted = [t for t in tm.required_topics() + tm.optional_topics() if t in topics]
     state = _Streams(bag, tm)
     read = dict.fromkeys(wanted, 0)
-    for topic, _log_t, decode in src.messages(wanted):
+    lo, hi = window or (None, None)
+    for topic, log_ns, decode in src.messages(wanted):
         read[topic] += 1
+        if window and topic not in (tm.tf_static, tm.task):
+            if log_ns > hi or log_ns < lo - (TF_LEAD_NS if topic == tm.tf else 0):
+                continue
         try:
             state.take(topic, decode)
         except (AttributeError, TypeError, ValueError, IndexError) as exc:
             raise AdlError(f"{bag}: topic {topic}: message lacks a field or holds a bad value "
                            f"({type(exc).__name__}: {' '.join(str(exc).split())[:120]})") from None
     if state.image is None or state.t_img is None:
-        raise AdlError(f"{bag}: no message could be read on the image topic {tm.image}")
+        span = f" in the segment {lo / 1e9:.3f}-{hi / 1e9:.3f} s (log time)" if window else ""
+        raise AdlError(f"{bag}: no message could be read on the image topic {tm.image}{span}")
     if state.info is None:
         raise AdlError(f"{bag}: no message on the camera-info topic {tm.camera_info}")
     return BagReadout(

@@ -26,6 +26,13 @@ class TopicMap:
     sync_tolerance_s: float = 0.05  # depth/affordance/ee matched to the first image within this
     trajectory_end_s: float | None = None  # seconds after the first image; null: to the last ee pose
     max_tf_gap_s: float = 0.2  # a longer gap in the end-effector tf is an error (or, with --allow-tf-gaps, a note)
+    # Several demonstrations in one bag (adlpipe.bags.segments): a start/stop marker topic, or motion.
+    segment_topic: str | None = None  # std_msgs/String "start"/"stop" or std_msgs/Bool true/false
+    segment_idle_s: float | None = None  # split where the robot idles this long (null: no motion segmentation)
+    segment_speed_mps: float = 0.01  # end effector slower than this is idle
+    segment_gripper_joint: str | None = None  # also require this joint (the gripper) to be still
+    segment_gripper_rate: float = 0.01  # joint units per second
+    segment_min_s: float = 1.0  # shorter active stretches are not demonstrations
 
     @classmethod
     def load(cls, paths: str | Path | list | None) -> TopicMap:
@@ -66,6 +73,7 @@ class TopicMap:
 
     def optional_topics(self) -> list[str]:
         return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static) if t]
+
 
 
 def _check_value(path: object, key: str, value: object, annotation: str) -> None:
