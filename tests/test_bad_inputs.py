@@ -336,3 +336,105 @@ def test_a_jpeg_with_its_frame_header_past_64_kib_decodes() -> None:
     msg = type("CompressedImage", (), {"data": big, "format": "jpeg"})()
     out = decode_compressed(msg, "cam")
     assert out.shape == (24, 40, 3) and abs(int(out[5, 5, 0]) - 200) < 20
+
+
+def _edited_schema_bag(path: Path, edit: str) -> Path:
+    """An MCAP written with mcap_ros2's writer whose message definitions for one type were edited (a field gone)."""
+    from mcap_ros2.writer import Writer
+
+    from adlpipe.bags.messages import typestore
+
+    store = typestore(2)
+    defs = {t: store.generate_msgdef(t, ros_version=2)[0] for t in
+            ("sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "tf2_msgs/msg/TFMessage")}
+    stamp = {"sec": 1, "nanosec": 0}
+    header = {"stamp": stamp, "frame_id": "cam"}
+    image = {"header": header, "height": 2, "width": 2, "encoding": "rgb8", "is_bigendian": 0, "step": 6,
+             "data": bytes(12)}
+    info = {"header": header, "height": 2, "width": 2, "distortion_model": "", "d": [], "k": [1.0, 0, 0.5, 0, 1, 0.5,
+            0, 0, 1], "r": [0.0] * 9, "p": [0.0] * 12, "binning_x": 0, "binning_y": 0,
+            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}}
+    tf = {"transforms": [{"header": {"stamp": stamp, "frame_id": "base_link"}, "child_frame_id": "ee_link",
+                          "transform": {"translation": {"x": 0.0, "y": 0.0, "z": 0.0},
+                                        "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]}
+    if edit == "TFMessage without transforms":
+        defs["tf2_msgs/msg/TFMessage"], tf = "int32 count", {"count": 1}
+    elif edit == "CameraInfo without k":
+        d = defs["sensor_msgs/msg/CameraInfo"]
+        defs["sensor_msgs/msg/CameraInfo"] = d.replace("float64[9]  k\n", "").replace("float64[9] k\n", "")
+        assert defs["sensor_msgs/msg/CameraInfo"] != d
+        info.pop("k")
+    elif edit == "Image without header":
+        d = defs["sensor_msgs/msg/Image"]
+        defs["sensor_msgs/msg/Image"] = d.replace("std_msgs/Header header", "", 1)
+        assert defs["sensor_msgs/msg/Image"] != d
+        image.pop("header")
+    with open(path, "wb") as f:
+        w = Writer(f)
+        schemas = {t: w.register_msgdef(t, text) for t, text in defs.items()}
+        w.write_message("/tf", schemas["tf2_msgs/msg/TFMessage"], tf, log_time=10**9, publish_time=10**9)
+        w.write_message("/camera/color/camera_info", schemas["sensor_msgs/msg/CameraInfo"], info, log_time=10**9,
+                        publish_time=10**9)
+        w.write_message("/camera/color/image_raw", schemas["sensor_msgs/msg/Image"], image, log_time=10**9,
+                        publish_time=10**9)
+        w.finish()
+    return path
+
+
+@pytest.mark.parametrize(("edit", "topic"), [("TFMessage without transforms", "/tf"),
+                                             ("CameraInfo without k", "/camera/color/camera_info"),
+                                             ("Image without header", "/camera/color/image_raw")])
+def test_messages_with_edited_definitions_are_one_line_naming_topic_and_field(tmp_path: Path, edit: str,
+                                                                              topic: str) -> None:
+    bag = _edited_schema_bag(tmp_path / "edited.mcap", edit)
+    line = one_line_error(subprocess.run([sys.executable, "-m", "adlpipe.ingest", str(bag), "-o",
+                                          str(tmp_path / "x.h5"), "--task", "t"], capture_output=True, text=True,
+                                         cwd=REPO))
+    assert topic in line, line
+    assert {"TFMessage without transforms": "transforms", "CameraInfo without k": "k",
+            "Image without header": "header"}[edit] in line, line
+
+
+@pytest.mark.parametrize("where", ["frame", "joint"])
+def test_a_nul_in_a_name_is_one_line(tmp_path: Path, where: str) -> None:
+    from layouts import ROBOTS, Layout, topic_map, write_layout_bag
+
+    robot = dict(ROBOTS["ur"])
+    if where == "frame":
+        robot["static"] = [("flange", 0.0), ("tool\x000", 0.0)]
+    ROBOTS["nul"] = robot
+    try:
+        lay = Layout(robot="nul")
+        bag, _t, _p = write_layout_bag(tmp_path / "n.mcap", lay)
+        m = topic_map(lay)
+    finally:
+        del ROBOTS["nul"]
+    if where == "joint":  # rewrite the joint names with a NUL through the real writer
+        from adlpipe.bags import messages as M
+        from adlpipe.bags.writer import BagWriter
+
+        w = BagWriter(tmp_path / "j.mcap", "mcap")
+        for topic, msgtype, t, msg in _copy_messages(bag):
+            if msgtype == M.JOINT_STATE:
+                msg.name[0] = "joint\x001"
+            w.write(topic, msgtype, t, msg)
+        bag = w.close()
+    cfg = tmp_path / "m.yaml"
+    import yaml
+
+    m["ee_frame"] = "flange"
+    cfg.write_text(yaml.safe_dump(m))
+    line = one_line_error(subprocess.run([sys.executable, "-m", "adlpipe.ingest", str(bag), "-o",
+                                          str(tmp_path / "x.h5"), "--config", str(cfg), "--size", "32"],
+                                         capture_output=True, text=True, cwd=REPO))
+    assert "control characters" in line and where in line
+
+
+def _copy_messages(bag: Path):  # noqa: ANN202
+    from rosbags.highlevel import AnyReader
+
+    from adlpipe.bags.messages import typestore
+
+    with AnyReader([bag], default_typestore=typestore(2)) as r:
+        for c, t, raw in r.messages():
+            yield c.topic, c.msgtype, t, r.deserialize(raw, c.msgtype)
