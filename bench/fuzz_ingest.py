@@ -1,9 +1,12 @@
 """Stress run of the ingest fuzzer: thousands of mutated bags (MCAP, ROS1 .bag, ROS2 .db3).
 
-    python bench/fuzz_ingest.py [--cases 1200] [--seed 0]
+    python bench/fuzz_ingest.py [--cases 5000] [--seed 0]
 
-Every case must end in an ingested episode or one clear AdlError line, within a time limit, leaving no partial
-output. Prints the counts per format and mutation, and every failing case with its seed to reproduce it.
+Byte mutations (truncate, flip, length, zero, duplicate, splice) and structure-aware ones (MCAP schema text,
+summary statistics and declared array lengths; ROS1 connection headers; sqlite pages and the topics table; NUL bytes
+in names), cycled over the three formats. Every case must end in an ingested episode or one clear AdlError line,
+within a time limit, leaving no partial output. Prints the counts per format and mutation, and every failing case
+with its seed to reproduce it.
 """
 
 from __future__ import annotations
@@ -18,12 +21,12 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from fuzzing import MUTATIONS, run_case  # noqa: E402
+from fuzzing import MUTATIONS, STRUCTURED, run_case  # noqa: E402
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--cases", type=int, default=1200)
+    p.add_argument("--cases", type=int, default=5000)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -37,9 +40,9 @@ def main() -> None:
         counts: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
         failures = []
         t0 = time.time()
-        fmts = list(bases)
+        plan = [(fmt, m) for fmt in bases for m in MUTATIONS + STRUCTURED[fmt]]
         for i in range(args.cases):
-            fmt, mutation = fmts[i % len(fmts)], MUTATIONS[(i // len(fmts)) % len(MUTATIONS)]
+            fmt, mutation = plan[i % len(plan)]
             seed, recover = args.seed * 1_000_003 + i, bool(i % 2)
             out = run_case(bases[fmt], mutation, seed, recover=recover)
             counts[f"{fmt}/{mutation}"][out.kind] += 1
