@@ -1,7 +1,8 @@
 """The HDF5 dataset schema, written down once (docs/hdf5_schema.md describes the same layout).
 
     /                          attrs: format_version, n_waypoints, image_size
-    /episodes/<name>/          one group per bag; <name> = "<task_slug>-<sha256[:16]>"
+    /episodes/<name>/          one group per bag (or per demonstration of a segmented bag);
+                               <name> = "<task_slug>-<sha256[:16]>" [+ "-s<segment>"]
         attrs: task, source_path, source_sha256, source_format, duration_s, stamp0_ns, base_frame,
                camera_frame, has_depth, has_affordance, note (what a --recover ingest lost)
         rgb          (H, W, 3) uint8     first camera frame, resized to image_size
