@@ -139,14 +139,14 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
 
 
 def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -> dict:
-    """The few numbers `dvc metrics show` prints: per model, its best checkpoint with the default sampler (and 16
-    steps for the generative ones), and whether it converged."""
+    """The few numbers `dvc metrics show` prints: per model, its best checkpoint with its default sampler and step
+    count (FM 1, DP 16, BC direct; px_16_steps for FM), and whether it converged."""
     out: dict = {"n_test": n_test}
     for model, by_ck in results.items():
         best = by_ck["best"]
         default = best.get(DEFAULTS.get(model, "")) or min(best.values(), key=lambda r: r["steps"])
         h = {"px": round(default["px"], 3), "px224": round(default["px224"], 3), "ms": round(default["ms"], 2),
-             "steps": default["steps"], "converged": training.get(model, {}).get("converged")}
+             "converged": training.get(model, {}).get("converged")}
         r16 = best.get(f"{default['method']}/16")
         if r16 is not None and default["steps"] != 16:
             h["px_16_steps"] = round(r16["px"], 3)

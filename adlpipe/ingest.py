@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import multiprocessing
 import os
 import shutil
 import signal
 import stat
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -324,17 +324,19 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
     jobs = [(str(b), tm, n_waypoints, size, task, recover, known, allow_tf_gaps, segments) for b in bags]
     results = []
     if workers > 1 and len(jobs) > 1:
-        pool = ProcessPoolExecutor(max_workers=workers, initializer=_ignore_sigint)
+        # multiprocessing's Pool, not concurrent.futures: its terminate() stops the workers at once on Ctrl-C, where
+        # an executor's management thread trips over the futures it cancelled (InvalidStateError, a hang).
+        pool = multiprocessing.get_context("fork").Pool(workers, initializer=_ignore_sigint)
         try:
-            it = pool.map(_worker, jobs)
+            it = pool.imap(_worker, jobs)
             results = list(tqdm(it, total=len(jobs), desc="ingest", unit="bag", file=sys.stderr,
                                 disable=None if progress else True))
-        except KeyboardInterrupt:
-            for proc in list(getattr(pool, "_processes", {}).values()):  # stop now, not after the running bags
-                proc.terminate()
-            pool.shutdown(wait=False, cancel_futures=True)
+            pool.close()
+        except BaseException:
+            pool.terminate()
             raise
-        pool.shutdown()
+        finally:
+            pool.join()
     else:
         bar = tqdm(jobs, desc="ingest", unit="bag", file=sys.stderr, disable=None if progress else True)
         results = [_worker(j) for j in bar]

@@ -260,7 +260,7 @@ def test_two_ingests_started_together_lose_nothing(mcap_bags: list[Path], tmp_pa
         assert len(f["episodes"]) == len(mcap_bags)
 
 
-@pytest.mark.parametrize("delay", [1.5, 3.0, 4.5])
+@pytest.mark.parametrize("delay", [0.0, 0.5, 1.5])
 def test_ctrl_c_stops_a_parallel_ingest_and_keeps_the_old_file(mcap_bags: list[Path], tmp_path: Path,
                                                                delay: float) -> None:
     import signal
@@ -278,6 +278,10 @@ def test_ctrl_c_stops_a_parallel_ingest_and_keeps_the_old_file(mcap_bags: list[P
     out.unlink()
     proc = subprocess.Popen([sys.executable, "-m", "adlpipe.ingest", *map(str, bags), "-o", str(out), "--size", "64",
                              "--workers", "2"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lock = tmp_path / ".x.h5.lock"  # the ingest holds its output's lock from the start of its work
+    deadline = time.time() + 120
+    while not lock.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
     time.sleep(delay)
     proc.send_signal(signal.SIGINT)
     t0 = time.time()
