@@ -119,6 +119,8 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         aff_img = cv2.resize(np.nan_to_num(a), (size, size), interpolation=cv2.INTER_LINEAR)
     names, poses = object_poses(r, tm, camera_frame)
     n_joints = len(r.joint_names) if r.joint_t else 0
+    if n_joints and not np.isfinite(np.asarray(r.joint_pos, float)).all():
+        raise AdlError(f"{bag}: non-finite joint positions on {tm.joints}")
     ep = schema.Episode(
         task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=r.kind,
         duration_s=t_end, stamp0_ns=int(round(r.t_img * 1e9)), base_frame=tm.base_frame, camera_frame=camera_frame,
@@ -216,6 +218,8 @@ def object_poses(r: BagReadout, tm: TopicMap, camera_frame: str) -> tuple[list[s
         if child in skip or parent != tm.base_frame:
             continue
         T = r.tf.lookup(tm.base_frame, child, t)
+        if not np.isfinite(T).all() or np.abs(T[:3, 3]).max() > MAX_COORD_M:
+            raise AdlError(f"{r.bag}: pose of frame {child!r} in {tm.base_frame!r} from tf is not finite")
         names.append(child)
         poses.append(np.concatenate([T[:3, 3], matrix_to_quat(T[:3, :3])]))
     return names, poses

@@ -442,3 +442,28 @@ def _copy_messages(bag: Path):  # noqa: ANN202
     with AnyReader([bag], default_typestore=typestore(2)) as r:
         for c, t, raw in r.messages():
             yield c.topic, c.msgtype, t, r.deserialize(raw, c.msgtype)
+
+
+def test_the_horizon_comes_from_the_data(capsys: pytest.CaptureFixture, mcap_bags: list[Path],
+                                         tmp_path: Path) -> None:
+    """--waypoints 16 trains and evaluates a 16-waypoint model; 6 (not a multiple of 4 for the U-Net) is refused."""
+    for n in (16, 6):
+        data = tmp_path / f"w{n}.h5"
+        assert run_stage(capsys, "ingest", *mcap_bags, "-o", data, "--size", "32", "--waypoints", n).returncode == 0
+        with h5py.File(data) as f:
+            names = sorted(f["episodes"])
+        split = tmp_path / f"s{n}.json"
+        split.write_text(json.dumps({"train": names[:2], "test": names[2:]}))
+        args = ["--model", "fm_cnn", "--data", data, "--split", split, "--out", tmp_path / f"m{n}", "--epochs", 1,
+                "--image-size", 32, "--val-fraction", 0]
+        if n == 6:
+            assert "multiple of 4" in one_line_error(run_stage(capsys, "train", *args))
+            continue
+        assert run_stage(capsys, "train", *args).returncode == 0
+        proc = run_stage(capsys, "evaluate", "--models", tmp_path / f"m{n}", "--data", data, "--split", split,
+                         "--steps", 1, 2,
+                         "--repeats", 1, "--best-of", 1, "--metrics", tmp_path / "e.json", "--details",
+                         tmp_path / "d.json", "--plots", tmp_path / "p.csv", "--table", tmp_path / "t.md")
+        assert proc.returncode == 0, proc.stderr
+        d = json.loads((tmp_path / "d.json").read_text())
+        assert d["models"][f"m{n}"]["best"]["euler/1"]["px"] > 0
