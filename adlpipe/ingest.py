@@ -328,16 +328,21 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
     jobs = [(str(b), tm, n_waypoints, size, task, recover, known, allow_tf_gaps, segments) for b in bags]
     results = []
     if workers > 1 and len(jobs) > 1:
-        # multiprocessing's Pool, not concurrent.futures: its terminate() stops the workers at once on Ctrl-C, where
-        # an executor's management thread trips over the futures it cancelled (InvalidStateError, a hang).
-        pool = multiprocessing.get_context("fork").Pool(workers, initializer=_ignore_sigint)
+        # multiprocessing's Pool, not concurrent.futures: its workers can be stopped at once on Ctrl-C, where an
+        # executor's management thread trips over the futures it cancelled (InvalidStateError, a hang). Ctrl-C is
+        # held back while the workers fork, so it never meets a half-built pool.
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            pool = multiprocessing.get_context("fork").Pool(workers, initializer=_ignore_sigint)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
         try:
             it = pool.imap(_worker, jobs)
             results = list(tqdm(it, total=len(jobs), desc="ingest", unit="bag", file=sys.stderr,
                                 disable=None if progress else True))
             pool.close()
         except BaseException:
-            pool.terminate()
+            pool.terminate()  # the workers ignore SIGINT, so none dies holding the task queue's lock
             raise
         finally:
             pool.join()
