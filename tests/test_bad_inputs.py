@@ -361,6 +361,7 @@ def _edited_schema_bag(path: Path, edit: str) -> Path:
     tf = {"transforms": [{"header": {"stamp": stamp, "frame_id": "base_link"}, "child_frame_id": "ee_link",
                           "transform": {"translation": {"x": 0.0, "y": 0.0, "z": 0.0},
                                         "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]}
+    garbled = edit == "garbled TFMessage definition"
     if edit == "TFMessage without transforms":
         defs["tf2_msgs/msg/TFMessage"], tf = "int32 count", {"count": 1}
     elif edit == "CameraInfo without k":
@@ -376,7 +377,13 @@ def _edited_schema_bag(path: Path, edit: str) -> Path:
     with open(path, "wb") as f:
         w = Writer(f)
         schemas = {t: w.register_msgdef(t, text) for t, text in defs.items()}
-        w.write_message("/tf", schemas["tf2_msgs/msg/TFMessage"], tf, log_time=10**9, publish_time=10**9)
+        if garbled:  # a definition the writer itself would refuse to parse: written as a raw MCAP schema record
+            raw = w._writer  # noqa: SLF001 - the plain mcap writer under mcap_ros2's
+            sid = raw.register_schema("tf2_msgs/msg/TFMessage", "ros2msg", b"float64 = oops ===\nint32[ x")
+            cid = raw.register_channel("/tf", "cdr", sid)
+            raw.add_message(cid, 10**9, b"\x00\x01\x00\x00" + bytes(8), 10**9)
+        else:
+            w.write_message("/tf", schemas["tf2_msgs/msg/TFMessage"], tf, log_time=10**9, publish_time=10**9)
         w.write_message("/camera/color/camera_info", schemas["sensor_msgs/msg/CameraInfo"], info, log_time=10**9,
                         publish_time=10**9)
         w.write_message("/camera/color/image_raw", schemas["sensor_msgs/msg/Image"], image, log_time=10**9,
@@ -386,6 +393,7 @@ def _edited_schema_bag(path: Path, edit: str) -> Path:
 
 
 @pytest.mark.parametrize(("edit", "topic"), [("TFMessage without transforms", "/tf"),
+                                             ("garbled TFMessage definition", "/tf"),
                                              ("CameraInfo without k", "/camera/color/camera_info"),
                                              ("Image without header", "/camera/color/image_raw")])
 def test_messages_with_edited_definitions_are_one_line_naming_topic_and_field(tmp_path: Path, edit: str,
@@ -396,7 +404,7 @@ def test_messages_with_edited_definitions_are_one_line_naming_topic_and_field(tm
                                          cwd=REPO))
     assert topic in line, line
     assert {"TFMessage without transforms": "transforms", "CameraInfo without k": "k",
-            "Image without header": "header"}[edit] in line, line
+            "Image without header": "header", "garbled TFMessage definition": "does not decode"}[edit] in line, line
 
 
 @pytest.mark.parametrize("where", ["frame", "joint"])

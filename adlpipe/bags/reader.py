@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -167,7 +169,9 @@ class BagSource:
         if key not in cache:
             decoder = None
             for factory in self._decoders():
-                decoder = factory.decoder_for(channel.message_encoding, schema)
+                # mcap_ros2's schema parser prints its own "Error with: ..." line; ours is the one that counts
+                with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+                    decoder = factory.decoder_for(channel.message_encoding, schema)
                 if decoder is not None:
                     break
             if decoder is None:
