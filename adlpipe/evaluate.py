@@ -24,10 +24,10 @@ from pathlib import Path
 import h5py
 import torch
 
-from . import schema
 from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
-from .data import Normalizer, TrajectoryDataset
+from .dataset import schema
+from .dataset.loader import Normalizer, TrajectoryDataset
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS

@@ -1,4 +1,4 @@
-"""Ingest ROS bags into one HDF5 dataset (schema: adlpipe.schema, docs/hdf5_schema.md).
+"""Ingest ROS bags into one HDF5 dataset (schema: adlpipe.dataset.schema, docs/hdf5_schema.md).
 
     python -m adlpipe.ingest data/bags/*.mcap -o data/adl.h5 [--config topics.yaml] [--waypoints 32]
 
@@ -29,7 +29,6 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from . import schema
 from .atomic import atomic_path, check_outputs
 from .bags.episode_reader import BagReadout, check_counts, read_bag
 from .bags.images import decode_depth, decode_image
@@ -38,6 +37,7 @@ from .bags.segments import find_segments
 from .bags.survey import list_lines, suggest_config, survey
 from .bags.topics import TopicMap
 from .cli import Parser, int_range
+from .dataset import schema
 from .errors import AdlError, run_cli
 from .geometry import matrix_to_quat, project, resample, scale_intrinsics
 from .lock import exclusive

@@ -19,10 +19,10 @@ import rerun as rr
 import rerun.blueprint as rrb
 import torch
 
-from . import schema
 from .atomic import atomic_path, check_outputs
 from .cli import NON_NEGATIVE, Parser, int_range
-from .data import Normalizer, observation
+from .dataset import schema
+from .dataset.loader import Normalizer, observation
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
 from .split import load_split

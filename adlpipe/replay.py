@@ -26,10 +26,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from . import schema
 from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
-from .data import Normalizer, observation, observation_from_arrays
+from .dataset import schema
+from .dataset.loader import Normalizer, observation, observation_from_arrays
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
 from .split import load_split

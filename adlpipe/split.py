@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import schema
 from .atomic import check_outputs, write_json_atomic
 from .cli import NON_NEGATIVE, Parser, float_range
+from .dataset import schema
 from .errors import AdlError, run_cli
 
 

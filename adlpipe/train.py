@@ -28,10 +28,10 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from . import schema
 from .atomic import atomic_path, write_json_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, float_range, int_range
-from .data import Normalizer, TrajectoryDataset, compute_stats
+from .dataset import schema
+from .dataset.loader import Normalizer, TrajectoryDataset, compute_stats
 from .errors import AdlError, run_cli
 from .lock import exclusive
 from .policy.checkpoint import load_checkpoint, save_atomic

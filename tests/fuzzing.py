@@ -15,8 +15,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from adlpipe import schema
 from adlpipe.bags.topics import TopicMap
+from adlpipe.dataset import schema
 from adlpipe.errors import AdlError
 from adlpipe.ingest import ingest
 

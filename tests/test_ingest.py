@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from conftest import PUBLIC_BAGS, one_line_error, run_module
 
-from adlpipe import schema
 from adlpipe.bags.topics import TopicMap
+from adlpipe.dataset import schema
 from adlpipe.errors import AdlError
 from adlpipe.ingest import ingest
 from adlpipe.record import write_episode_bag

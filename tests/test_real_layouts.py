@@ -14,8 +14,8 @@ import yaml
 from conftest import REPO, one_line_error, run_module
 from layouts import Layout, topic_map, write_layout_bag
 
-from adlpipe import schema
 from adlpipe.bags.topics import TopicMap
+from adlpipe.dataset import schema
 from adlpipe.errors import AdlError
 from adlpipe.ingest import ingest
 

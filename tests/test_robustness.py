@@ -21,9 +21,9 @@ from fuzzing import MUTATIONS, run_case
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from adlpipe import schema
 from adlpipe.atomic import atomic_path, write_json_atomic
 from adlpipe.bags.images import decode_compressed, decode_raw
+from adlpipe.dataset import schema
 from adlpipe.errors import AdlError
 from adlpipe.ingest import sha256_of
 

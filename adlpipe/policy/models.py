@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, replace
 import torch
 from torch import nn
 
-from ..data import ACTION_DIM
+from ..dataset.loader import ACTION_DIM
 from .nets.resnet import ResNet18GN
 from .nets.transformer import TransformerDenoiser, TransformerRegressor
 from .nets.unet1d import ConditionalUnet1D

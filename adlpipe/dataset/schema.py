@@ -29,7 +29,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .errors import AdlError
+from ..errors import AdlError
 
 FORMAT_VERSION = 1
 EPISODES = "episodes"
