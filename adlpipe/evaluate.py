@@ -28,10 +28,10 @@ from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
 from .dataset import schema
 from .dataset.loader import Normalizer, TrajectoryDataset
+from .dataset.splits import load_split
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
-from .split import load_split
 
 STEPS = [1, 2, 4, 8, 16]
 CHECKPOINTS = {"best": "best.pt", "last": "model.pt"}

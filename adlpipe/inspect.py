@@ -23,9 +23,9 @@ from .atomic import atomic_path, check_outputs
 from .cli import NON_NEGATIVE, Parser, int_range
 from .dataset import schema
 from .dataset.loader import Normalizer, observation
+from .dataset.splits import load_split
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
-from .split import load_split
 
 GT_COLOR = [40, 200, 40]
 PRED_COLOR = [230, 60, 40]

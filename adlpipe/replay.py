@@ -30,9 +30,9 @@ from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
 from .dataset import schema
 from .dataset.loader import Normalizer, observation, observation_from_arrays
+from .dataset.splits import load_split
 from .errors import AdlError, run_cli
 from .policy.checkpoint import load_policy
-from .split import load_split
 
 CHECKPOINTS = {"best": "best.pt", "last": "model.pt"}
 

@@ -32,11 +32,11 @@ from .atomic import atomic_path, write_json_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, float_range, int_range
 from .dataset import schema
 from .dataset.loader import Normalizer, TrajectoryDataset, compute_stats
+from .dataset.splits import load_split, make_split
 from .errors import AdlError, run_cli
 from .lock import exclusive
 from .policy.checkpoint import load_checkpoint, save_atomic
 from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, Policy, preset
-from .split import load_split, make_split
 
 LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "val_px", "lr", "seconds"]
 CONVERGENCE_TOLERANCE = 0.02  # best val px may fall by at most 2 % over the last fifth of training

@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from adlpipe.dataset.splits import make_split
 from adlpipe.errors import AdlError
 from adlpipe.policy.checkpoint import load_checkpoint, load_policy
 from adlpipe.policy.models import MODELS, ModelConfig, Policy
 from adlpipe.policy.objectives import DDPM, FlowMatching, interpolate, squaredcos_cap_v2, velocity_from_x1
-from adlpipe.split import make_split
 from adlpipe.train import train
 
 TINY = dict(image_size=32, encoder_width=8, obs_dim=16, down_dims=(16, 32, 64), d_model=32, n_layers=1, n_heads=2)
