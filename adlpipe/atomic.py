@@ -68,9 +68,7 @@ def check_outputs(*paths: Path | str) -> None:
 def write_all_atomic(texts: dict[Path, str]) -> None:
     """A stage's outputs all or none: every file is written to its temp first; only when all are written do they
     replace their targets (a folder in the way or a full disk leaves every old output as it was)."""
-    for path in texts:
-        if Path(path).is_dir():
-            raise IsADirectoryError(errno.EISDIR, "is a folder, not a file", str(path))
+    check_outputs(*texts)
     done: list[tuple[Path, Path]] = []
     try:
         for path, text in texts.items():

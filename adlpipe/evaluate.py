@@ -21,7 +21,6 @@ import sys
 import time
 from pathlib import Path
 
-import h5py
 import torch
 
 from .atomic import check_outputs, json_text, write_all_atomic
@@ -30,11 +29,10 @@ from .dataset import schema
 from .dataset.loader import Normalizer, TrajectoryDataset
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
-from .policy.checkpoint import load_policy
+from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
 
 STEPS = [1, 2, 4, 8, 16]
-CHECKPOINTS = {"best": "best.pt", "last": "model.pt"}
 DEFAULTS = {name: f"{DEFAULT_METHOD[kind]}/{DEFAULT_STEPS[kind]}" for name, (kind, _net) in MODELS.items()}
 PAPER_IMAGE_PX = 224
 
@@ -65,13 +63,13 @@ def latency_ms(policy, obs: torch.Tensor, steps: int, method: str, repeats: int)
 
 
 def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: list[int],
-                   methods_by_kind: dict[str, list[str]], k: int, repeats: int, seed: int,
+                   methods_by_kind: dict[str, list[str]], k: int, repeats: int, seed: int, image_px: int,
                    checkpoint: str = "model.pt", timings: dict | None = None) -> dict:
     """methods_by_kind: the samplers to evaluate for each objective family ("fm", "ddpm"); others use their
-    default. timings: latencies already measured for the same network (another checkpoint), reused."""
+    default. image_px: the stored image size the pixel errors are in. timings: latencies already measured for the
+    same network (another checkpoint), reused."""
     policy, ck = load_policy(model_dir / checkpoint)
     cfg = policy.cfg
-    image_px = _stored_image_px(data)
     ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth)
     norm = Normalizer(ck["stats"])
     obs = torch.stack([ds[i][0] for i in range(len(ds))])
@@ -110,12 +108,6 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
                 "per_task": per_task,
             }
     return rows
-
-
-def _stored_image_px(data: Path) -> int:
-    with h5py.File(data, "r") as f:
-        first = schema.episode_names(f)[0]
-        return int(f[schema.EPISODES][first]["rgb"].shape[0])
 
 
 def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
@@ -207,8 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     split = load_split(args.split or args.data.with_name("split.json"))
     if not split["test"]:
         raise AdlError("the test split is empty: record more episodes per task")
-    with schema.open_dataset(args.data, split["test"]):
-        pass
+    with schema.open_dataset(args.data, split["test"]) as f:
+        image_px = int(f[schema.EPISODES][split["test"][0]]["rgb"].shape[0])
     results: dict[str, dict] = {}
     training: dict[str, dict] = {}
     methods = {"fm": args.fm_methods, "ddpm": args.dp_methods}
@@ -216,12 +208,16 @@ def main(argv: list[str] | None = None) -> int:
         for name in CHECKPOINTS.values():
             if not (d / name).exists():
                 raise AdlError(f"{d}: no {name}; train it first (python -m adlpipe.train)")
-        last = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
-                              args.seed)
-        best = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
-                              args.seed, CHECKPOINTS["best"], timings=last)
-        results[d.name] = {"best": best, "last": last}
         training[d.name] = _training_metrics(d)
+        last = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
+                              args.seed, image_px)
+        t = training[d.name]
+        if t and t.get("best_epoch") == t.get("epochs"):
+            best = last  # the best validation epoch was the last: best.pt holds model.pt's weights
+        else:
+            best = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
+                                  args.seed, image_px, CHECKPOINTS["best"], timings=last)
+        results[d.name] = {"best": best, "last": last}
         top = min(best.values(), key=lambda r: r["px"])
         print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
               f"{top['steps']} steps){'' if training[d.name].get('converged') else ', not converged'}")

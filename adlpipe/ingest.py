@@ -22,6 +22,7 @@ import shutil
 import signal
 import stat
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
 import cv2
@@ -106,9 +107,10 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     K = scale_intrinsics(K0, size / w0, size / h0)
     image = r.image if r.image.ndim == 3 else np.repeat(r.image[..., None], 3, 2)
     rgb = cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA).astype(np.uint8)
-    depth_img = _synced_image(r.depth, tm.depth, r, tm, "depth image")
-    if depth_img is not None:
-        depth_img = cv2.resize(decode_depth(depth_img, f"{bag}: topic {tm.depth}"), (size, size),
+    depth_msg = _synced_image(r.depth, tm.depth, r, tm, "depth image")
+    depth_img = None
+    if depth_msg is not None:
+        depth_img = cv2.resize(decode_depth(depth_msg, f"{bag}: topic {tm.depth}"), (size, size),
                                interpolation=cv2.INTER_NEAREST)
     aff_msg = _synced_image(r.affordance, tm.affordance, r, tm, "affordance map")
     aff_img = np.zeros((size, size), np.float32)
@@ -245,11 +247,11 @@ def _ignore_sigint() -> None:
 
 def _worker(job: tuple) -> tuple[str, list[schema.Episode], str, str | None]:
     """(bag, its episodes (none if already ingested), note, error line or None). Runs in a pool process."""
-    bag, tm, n, size, task, recover, known, allow_gaps, segments_file = job
+    bag, tm, n, size, task, recover, known_shas, allow_gaps, segments_file = job
     try:
         check_bag_path(Path(bag))
         sha = sha256_of(Path(bag)) if Path(bag).exists() else None
-        if sha is not None and sha in {k.split("#")[0] for k in known}:
+        if sha is not None and sha in known_shas:
             return bag, [], "already ingested", None
         windows = find_segments(Path(bag), tm, segments_file) if not recover else None
         if windows is None:
@@ -280,7 +282,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="topic map YAML (keys of adlpipe.bags.topics.TopicMap); repeat it to combine, later ones "
                    "override: --config pipelines/presets/azure_kinect.yaml --config pipelines/presets/kinova_gen3.yaml")
     p.add_argument("--waypoints", type=int_range(2, 4096), default=32, help="waypoints per trajectory (default 32)")
-    p.add_argument("--size", type=int_range(8, 4096), default=224, help="stored image width and height (default 224)")
+    p.add_argument("--size", type=int_range(16, 4096), default=224, help="stored image width and height (default 224)")
     p.add_argument("--task", help="task name for bags without a task topic")
     p.add_argument("--workers", type=int_range(1, 256), default=min(4, os.cpu_count() or 1))
     p.add_argument("--skip-bad", action="store_true",
@@ -325,7 +327,8 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
                 known = schema.episode_keys(f)
         except OSError as exc:
             raise AdlError(f"{output}: existing output is not a readable HDF5 file ({exc})") from exc
-    jobs = [(str(b), tm, n_waypoints, size, task, recover, known, allow_tf_gaps, segments) for b in bags]
+    known_shas = {k.split("#")[0] for k in known}  # a bag whose sha is in the file is skipped whole
+    jobs = [(str(b), tm, n_waypoints, size, task, recover, known_shas, allow_tf_gaps, segments) for b in bags]
     results = []
     if workers > 1 and len(jobs) > 1:
         # multiprocessing's Pool, not concurrent.futures: its workers can be stopped at once on Ctrl-C, where an
@@ -378,11 +381,11 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
     return counts
 
 
-def check_free_space(output: Path, episodes: object) -> None:
+def check_free_space(output: Path, episodes: Iterable[schema.Episode]) -> None:
     """Refuse to start writing into a file system that cannot hold the result (HDF5 does not fail cleanly on a full
     disk): the copy of the old file plus the new episodes uncompressed, an upper bound."""
     need = output.stat().st_size if output.exists() else 0
-    for ep in episodes:  # type: ignore[attr-defined]
+    for ep in episodes:
         need += sum(a.nbytes for a in (ep.rgb, ep.affordance, ep.traj3d, ep.traj2d, ep.ee_pos, ep.joint_pos))
         need += ep.depth.nbytes if ep.depth is not None else 0
     free = shutil.disk_usage(output.parent).free

@@ -25,7 +25,7 @@ from .dataset import schema
 from .dataset.loader import Normalizer, observation
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
-from .policy.checkpoint import load_policy
+from .policy.checkpoint import CHECKPOINTS, load_policy
 
 GT_COLOR = [40, 200, 40]
 PRED_COLOR = [230, 60, 40]
@@ -84,12 +84,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int_range(1, 1000), default=4, help="predicted samples drawn per episode")
     p.add_argument("--steps", type=int_range(1, 100), default=4)
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
-    p.add_argument("--checkpoint", choices=["best", "last"], default="best",
+    p.add_argument("--checkpoint", choices=sorted(CHECKPOINTS), default="best",
                    help="best: the lowest validation px (best.pt, default); last: model.pt")
     p.add_argument("-o", "--output", type=Path, default=Path("preds.rrd"))
     args = p.parse_args(argv)
     check_outputs(args.output)
-    policy, ck = load_policy(args.model / {"best": "best.pt", "last": "model.pt"}[args.checkpoint])
+    policy, ck = load_policy(args.model / CHECKPOINTS[args.checkpoint])
     norm = Normalizer(ck["stats"])
     with schema.open_dataset(args.data) as f:
         all_names = schema.episode_names(f)

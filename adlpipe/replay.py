@@ -32,9 +32,7 @@ from .dataset import schema
 from .dataset.loader import Normalizer, observation, observation_from_arrays
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
-from .policy.checkpoint import load_policy
-
-CHECKPOINTS = {"best": "best.pt", "last": "model.pt"}
+from .policy.checkpoint import CHECKPOINTS, load_policy
 
 
 def _replay_one(job: tuple) -> tuple[str, str, bool]:

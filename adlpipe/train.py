@@ -23,7 +23,6 @@ import sys
 import time
 from pathlib import Path
 
-import h5py
 import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
@@ -99,12 +98,11 @@ def converged(history: list[dict], tolerance: float = CONVERGENCE_TOLERANCE) -> 
     return bool(early) and min(v for _, v in vals) >= (1 - tolerance) * min(early)
 
 
-def split_validation(data: Path, train_names: list[str], fraction: float, seed: int) -> tuple[list[str], list[str]]:
-    """(train, val): a stratified, seeded part of the train split held out for checkpoint selection."""
+def split_validation(tasks: dict[str, str], fraction: float, seed: int) -> tuple[list[str], list[str]]:
+    """(train, val): a stratified, seeded part of the train split (tasks: episode -> task) held out for checkpoint
+    selection."""
     if fraction <= 0:
-        return list(train_names), []
-    with h5py.File(data, "r") as f:
-        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in train_names}
+        return list(tasks), []
     parts = make_split(tasks, fraction, seed + 1)
     return parts["train"], parts["test"]
 
@@ -120,9 +118,10 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         raise AdlError(f"{split_path}: the train split is empty")
     with schema.open_dataset(data, split["train"] + split["test"]) as f:
         horizon = int(f.attrs["n_waypoints"])
+        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
     if horizon != cfg.horizon:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
-    train_names, val_names = split_validation(data, split["train"], val_fraction, seed)
+    train_names, val_names = split_validation(tasks, val_fraction, seed)
     stats = compute_stats(str(data), train_names)
     train_ds = TrajectoryDataset(str(data), train_names, stats, cfg.image_size, cfg.use_depth)
     test_ds = TrajectoryDataset(str(data), split["test"] or train_names, stats, cfg.image_size, cfg.use_depth)
@@ -158,6 +157,11 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         history, start_epoch = list(ck["history"]), int(ck["epoch"])
     best_px = min((r["val_px"] for r in history if r.get("val_px") is not None), default=math.inf)
 
+    def inference_checkpoint(epoch: int) -> dict:
+        """What evaluate, replay and inspect load: the EMA weights with their config, stats and history."""
+        return {"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats, "history": history,
+                "hparams": hparams, "epoch": epoch}
+
     test_loader = DataLoader(test_ds, batch_size=batch_size, shuffle=False)
     bar = tqdm(range(start_epoch, epochs), initial=start_epoch, total=epochs, desc=f"train {cfg.model}",
                unit="epoch", file=sys.stderr, disable=None if progress else True)
@@ -190,19 +194,16 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         bar.set_postfix(train=f"{row['train_loss']:.4f}", test=f"{row['test_loss']:.4f}")
         if val_px is not None and val_px < best_px:  # written before last.pt: a resumed run never lacks it
             best_px = val_px
-            save_atomic({"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats,
-                         "history": history, "hparams": hparams, "epoch": epoch + 1}, out / "best.pt")
+            save_atomic(inference_checkpoint(epoch + 1), out / "best.pt")
         save_atomic({"model": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
                      "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1,
                      "history": history, "config": cfg.to_dict(), "hparams": hparams, "stats": stats}, last)
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
             return {"interrupted_at": epoch + 1}
 
-    save_atomic({"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats, "history": history,
-                 "hparams": hparams, "epoch": epochs}, out / "model.pt")
+    save_atomic(inference_checkpoint(epochs), out / "model.pt")
     if not (out / "best.pt").exists():  # no validation part: the last weights are the only choice
-        save_atomic({"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats, "history": history,
-                     "hparams": hparams, "epoch": epochs}, out / "best.pt")
+        save_atomic(inference_checkpoint(epochs), out / "best.pt")
     if log_csv is not None:
         with atomic_path(log_csv) as tmp, open(tmp, "w", newline="") as f:
             w = csv.DictWriter(f, LOG_FIELDS)
@@ -255,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         with exclusive(out):
             for name in ("last.pt", "best.pt"):
                 (out / name).unlink(missing_ok=True)
-    with schema.open_dataset(args.data) as f:
+    with schema.open_dataset(args.data, names=[]) as f:  # train() checks the split's episodes
         horizon = int(f.attrs["n_waypoints"])
     if horizon % 4:  # the U-Net halves the sequence twice; the transformers take any length
         raise AdlError(f"{args.data}: {horizon} waypoints per trajectory; the models need a multiple of 4 "

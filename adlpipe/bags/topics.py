@@ -75,7 +75,6 @@ class TopicMap:
         return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static) if t]
 
 
-
 def _check_value(path: object, key: str, value: object, annotation: str) -> None:
     """One line naming the key when a YAML value has the wrong type (a number for a topic, a word for a number)."""
     optional = "None" in str(annotation)

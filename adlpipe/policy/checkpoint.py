@@ -13,6 +13,8 @@ from ..atomic import atomic_path
 from ..errors import AdlError
 from .models import ModelConfig, Policy
 
+CHECKPOINTS = {"best": "best.pt", "last": "model.pt"}  # the best validation epoch's EMA weights, and the last ones
+
 
 def save_atomic(obj: dict, path: Path) -> None:
     with atomic_path(path) as tmp:
