@@ -3,13 +3,16 @@
     python -m adlpipe.ingest data/bags/*.mcap -o data/adl.h5 [--config topics.yaml] [--waypoints 32]
 
 Reads ROS2 MCAP (CDR) and ROS1-in-MCAP with the mcap decoders, ROS1 .bag and ROS2 folders/.db3 with rosbags,
-streaming (only the first frame's images are kept). Messages are synced by header.stamp: depth, affordance and
-the end-effector pose are matched to the first RGB frame within `sync_tolerance_s`. The end-effector path from the
-first frame to its last pose is resampled to N waypoints evenly in time (traj3d, base frame, metres) and projected
-into the stored image with the CameraInfo intrinsics (traj2d, pixels).
+streaming: every camera frame is resized to --size and appended to the bag's episode file as it is read, so memory
+stays flat in bag length. Messages are synced by header.stamp within `sync_tolerance_s`: depth, affordance, joint
+states and the end-effector pose (interpolated in tf) to every frame (adlpipe.dataset.frames). For the seed's
+first-frame setting the end-effector path from the first frame to its last pose is also resampled to N waypoints
+evenly in time (traj3d, base frame, metres) and projected into the stored image (traj2d, pixels).
 
-Re-ingesting a bag already in the file (same sha256) is a no-op. The output is written to a temp file and renamed,
-so a failure or a kill leaves the old file (or none) in place.
+The output is an index (-o FILE) and a folder of episode files beside it (FILE's stem + .shards): one file per bag,
+one folder per run (adlpipe.dataset.shards). Appending writes only the new bags; re-ingesting a bag already in the
+dataset (same sha256) is a no-op. The index is replaced last, by a rename, so a failure or a kill leaves the old
+dataset (or none) whole.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from .atomic import atomic_path, check_outputs
+from .atomic import check_outputs
 from .bags.episode_reader import BagReadout, check_counts, read_bag
 from .bags.images import decode_depth, decode_image
 from .bags.reader import BagSource
@@ -38,7 +41,8 @@ from .bags.segments import find_segments
 from .bags.survey import list_lines, suggest_config, survey
 from .bags.topics import TopicMap
 from .cli import Parser, int_range
-from .dataset import schema
+from .dataset import schema, shards
+from .dataset.frames import FrameWriter
 from .errors import AdlError, run_cli
 from .geometry import matrix_to_quat, project, resample, scale_intrinsics
 from .lock import exclusive
@@ -82,11 +86,12 @@ def recovery_note(src: BagSource, read: dict[str, int]) -> str:
 
 def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_override: str | None = None,
                     recover: bool = False, sha: str | None = None, allow_tf_gaps: bool = False,
-                    window: tuple[int, int] | None = None, segment: int = -1) -> tuple[schema.Episode, str]:
+                    window: tuple[int, int] | None = None, segment: int = -1,
+                    frames: FrameWriter | None = None) -> tuple[schema.Episode, str]:
     """Read one bag (or one demonstration of it: `window`, log time ns) into an Episode; returns it with a note
-    (recovery losses, bridged tf gaps)."""
+    (recovery losses, bridged tf gaps). With `frames`, every frame streams into it and is synced at the end."""
     src = BagSource(bag, recover=recover)
-    r = read_bag(src, tm, window)
+    r = read_bag(src, tm, window, frames)
     notes = []
     if recover and src.damaged:
         notes.append(recovery_note(src, r.read))
@@ -123,14 +128,19 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     n_joints = len(r.joint_names) if r.joint_t else 0
     if n_joints and not np.isfinite(np.asarray(r.joint_pos, float)).all():
         raise AdlError(f"{bag}: non-finite joint positions on {tm.joints}")
+    joint_t = np.asarray(r.joint_t, float) - r.t_img
+    joint_pos = np.asarray(r.joint_pos, float).reshape(len(r.joint_t), n_joints)
+    if frames is not None:
+        gripper = r.joint_names.index(tm.gripper_joint) if tm.gripper_joint in r.joint_names[:n_joints] else None
+        frames.finish(r.t_img, t_end, tm.sync_tolerance_s, ee_t, ee_p, joint_t, joint_pos, gripper,
+                      f"{bag}: topic {tm.image}")
     ep = schema.Episode(
         task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=r.kind,
         duration_s=t_end, stamp0_ns=int(round(r.t_img * 1e9)), base_frame=tm.base_frame, camera_frame=camera_frame,
         rgb=rgb, affordance=aff_img, traj3d=traj3d, traj2d=project(traj3d, K, T_bc), K=K, T_base_camera=T_bc,
         depth=depth_img, has_affordance=aff_msg is not None, object_names=names,
         objects=np.array(poses).reshape(-1, 7), ee_t=ee_t, ee_pos=ee_p,
-        joint_t=np.asarray(r.joint_t, float) - r.t_img,
-        joint_pos=np.asarray(r.joint_pos, float).reshape(len(r.joint_t), n_joints),
+        joint_t=joint_t, joint_pos=joint_pos,
         joint_names=r.joint_names if n_joints else [], note="; ".join(notes), segment=segment,
     )
     return ep, ep.note
@@ -245,28 +255,37 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _worker(job: tuple) -> tuple[str, list[schema.Episode], str, str | None]:
-    """(bag, its episodes (none if already ingested), note, error line or None). Runs in a pool process."""
-    bag, tm, n, size, task, recover, known_shas, allow_gaps, segments_file = job
+def _worker(job: tuple) -> tuple[str, list[dict[str, str]], str, str | None]:
+    """(bag, catalog rows of its episodes (none if already ingested), note, error line or None). Runs in a pool
+    process: it streams the bag's episodes into their own file, `out`, and removes it on failure."""
+    bag, tm, n, size, task, recover, known_shas, allow_gaps, segments_file, out = job
     try:
         check_bag_path(Path(bag))
         sha = sha256_of(Path(bag)) if Path(bag).exists() else None
         if sha is not None and sha in known_shas:
             return bag, [], "already ingested", None
         windows = find_segments(Path(bag), tm, segments_file) if not recover else None
+        rows, notes = [], []
+        with h5py.File(out, "w") as f:
+            for k, w in enumerate(windows or [None]):
+                g = f.create_group("pending")
+                ep, note = extract_episode(Path(bag), tm, n, size, task, recover, sha, allow_gaps, w,
+                                           k if windows else -1, FrameWriter(g, size))
+                schema.write_episode(g, ep)
+                f.move("pending", f"{schema.EPISODES}/{ep.name}")
+                rows.append({"name": ep.name, "key": ep.key, "task": ep.task, "file": Path(out).name})
+                notes += [f"segment {k}: {note}" if windows else note] if note else []
         if windows is None:
-            ep, note = extract_episode(Path(bag), tm, n, size, task, recover, sha, allow_gaps)
-            return bag, [ep], note, None
-        eps = [extract_episode(Path(bag), tm, n, size, task, recover, sha, allow_gaps, w, k)[0]
-               for k, w in enumerate(windows)]
-        notes = "; ".join(f"segment {ep.segment}: {ep.note}" for ep in eps if ep.note)
-        return bag, eps, f"{len(eps)} demonstrations" + (f" ({notes})" if notes else ""), None
+            return bag, rows, "; ".join(notes), None
+        return bag, rows, f"{len(rows)} demonstrations" + (f" ({'; '.join(notes)})" if notes else ""), None
     except AdlError as exc:
-        return bag, [], "", str(exc)
+        error = str(exc)
     except MemoryError:
-        return bag, [], "", f"{bag}: out of memory while reading the bag"
+        error = f"{bag}: out of memory while reading the bag"
     except Exception as exc:  # noqa: BLE001 - one bag's unforeseen failure must not take the batch down
-        return bag, [], "", f"{bag}: cannot ingest ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
+        error = f"{bag}: cannot ingest ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
+    Path(out).unlink(missing_ok=True)
+    return bag, [], "", error
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -301,24 +320,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def remove_stale_temps(output: Path) -> None:
-    """Temp files of ingests that were killed (their process is gone): never a valid output, so remove them."""
-    for tmp in output.parent.glob(f".{output.name}.tmp*"):
-        try:
-            pid = int(tmp.name.rsplit(".tmp", 1)[1])
-            os.kill(pid, 0)
-        except ValueError:
-            continue  # not one of ours
-        except ProcessLookupError:
-            tmp.unlink(missing_ok=True)
-        except PermissionError:
-            continue  # alive, another user's
-
-
 def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, size: int = 224,
            task: str | None = None, workers: int = 1, skip_bad: bool = False, recover: bool = False,
            progress: bool = False, allow_tf_gaps: bool = False, segments: Path | None = None) -> dict:
-    """Ingest bags into `output` atomically. Returns counts; raises AdlError (output untouched) on a bad bag."""
+    """Ingest bags into the dataset `output` (an index; episode files in adl.shards beside it). Each bag streams
+    into its own file as it is read; the index is replaced only when every bag is in. Returns counts; raises
+    AdlError (dataset untouched) on a bad bag."""
     known: set[str] = set()
     if output.exists():
         try:
@@ -328,68 +335,75 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
         except OSError as exc:
             raise AdlError(f"{output}: existing output is not a readable HDF5 file ({exc})") from exc
     known_shas = {k.split("#")[0] for k in known}  # a bag whose sha is in the file is skipped whole
-    jobs = [(str(b), tm, n_waypoints, size, task, recover, known_shas, allow_tf_gaps, segments) for b in bags]
-    results = []
-    if workers > 1 and len(jobs) > 1:
-        # multiprocessing's Pool, not concurrent.futures: its workers can be stopped at once on Ctrl-C, where an
-        # executor's management thread trips over the futures it cancelled (InvalidStateError, a hang). Ctrl-C is
-        # held back while the workers fork, so it never meets a half-built pool.
-        held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        try:
-            pool = multiprocessing.get_context("fork").Pool(workers, initializer=_ignore_sigint)
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)
-        try:
-            it = pool.imap(_worker, jobs)
-            results = list(tqdm(it, total=len(jobs), desc="ingest", unit="bag", file=sys.stderr,
-                                disable=None if progress else True))
-            pool.close()
-        except BaseException:
-            pool.terminate()  # the workers ignore SIGINT, so none dies holding the task queue's lock
-            raise
-        finally:
-            pool.join()
-    else:
-        bar = tqdm(jobs, desc="ingest", unit="bag", file=sys.stderr, disable=None if progress else True)
-        results = [_worker(j) for j in bar]
-
-    errors = [err for _b, _e, _n, err in results if err]
-    if errors and not skip_bad:
-        more = f" (and {len(errors) - 1} more bad bag(s))" if len(errors) > 1 else ""
-        raise AdlError(errors[0] + more)
-    new = {}
-    for _bag, eps, _note, _err in results:
-        for ep in eps:
-            if ep.key not in known:
-                new.setdefault(ep.key, ep)  # the same bag given twice is ingested once
-    notes = [f"{b}: {n}" for b, eps, n, _ in results if n and eps]
-    skipped = sum(1 for _b, eps, _n, err in results if not eps and not err)
-    counts = {"new": len(new), "skipped": skipped, "bad": len(errors), "errors": errors, "notes": notes}
-    if not new:
-        return counts  # nothing to add: the file stays exactly as it was
     output.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temps(output)
-    check_free_space(output, new.values())
-    with atomic_path(output) as tmp:
-        if output.exists():
-            shutil.copy2(output, tmp)
-        with h5py.File(tmp, "a") as f:
-            if schema.EPISODES not in f:
-                schema.create_file(f, n_waypoints, size)
-            for ep in new.values():
-                schema.write_episode(f, ep)
-    return counts
+    shards.remove_unreferenced(output)
+    check_free_space(output, bags)
+    root_existed = shards.shards_dir(output).exists()
+    run, tmp_dir = shards.new_run(output)
+    try:
+        jobs = [(str(b), tm, n_waypoints, size, task, recover, known_shas, allow_tf_gaps, segments,
+                 str(tmp_dir / f"{i:06d}.h5")) for i, b in enumerate(bags)]
+        results = _run_jobs(jobs, workers, progress)
+        errors = [err for _b, _r, _n, err in results if err]
+        if errors and not skip_bad:
+            more = f" (and {len(errors) - 1} more bad bag(s))" if len(errors) > 1 else ""
+            raise AdlError(errors[0] + more)
+        new: dict[str, dict[str, str]] = {}
+        for _bag, rows, _note, _err in results:
+            if rows and all(r["key"] in known or r["key"] in new for r in rows):
+                (tmp_dir / rows[0]["file"]).unlink()  # the same bag given twice is ingested once
+                continue
+            new.update((r["key"], r) for r in rows)
+        notes = [f"{b}: {n}" for b, rows, n, _ in results if n and rows]
+        skipped = sum(1 for _b, rows, _n, err in results if not rows and not err)
+        counts = {"new": len(new), "skipped": skipped, "bad": len(errors), "errors": errors, "notes": notes}
+        if new:
+            shards.commit(output, run, tmp_dir, list(new.values()), n_waypoints, size)
+        return counts
+    finally:
+        if tmp_dir.exists():  # not committed: nothing of this run may stay
+            shutil.rmtree(tmp_dir, ignore_errors=True)
+            if not root_existed:
+                shutil.rmtree(shards.shards_dir(output), ignore_errors=True)
 
 
-def check_free_space(output: Path, episodes: Iterable[schema.Episode]) -> None:
+def _run_jobs(jobs: list[tuple], workers: int, progress: bool) -> list[tuple]:
+    """_worker over the jobs, in a process pool when there are several. Results are a few strings per bag."""
+    bar = {"desc": "ingest", "unit": "bag", "file": sys.stderr, "disable": None if progress else True,
+           "total": len(jobs)}
+    if workers <= 1 or len(jobs) <= 1:
+        return [_worker(j) for j in tqdm(jobs, **bar)]
+    # multiprocessing's Pool, not concurrent.futures: its workers can be stopped at once on Ctrl-C, where an
+    # executor's management thread trips over the futures it cancelled (InvalidStateError, a hang). Ctrl-C is
+    # held back while the workers fork, so it never meets a half-built pool.
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        pool = multiprocessing.get_context("fork").Pool(workers, initializer=_ignore_sigint)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+    try:
+        results = list(tqdm(pool.imap(_worker, jobs), **bar))
+        pool.close()
+        return results
+    except BaseException:
+        pool.terminate()  # the workers ignore SIGINT, so none dies holding the task queue's lock
+        raise
+    finally:
+        pool.join()
+
+
+def check_free_space(output: Path, bags: Iterable[Path]) -> None:
     """Refuse to start writing into a file system that cannot hold the result (HDF5 does not fail cleanly on a full
-    disk): the copy of the old file plus the new episodes uncompressed, an upper bound."""
-    need = output.stat().st_size if output.exists() else 0
-    for ep in episodes:
-        need += sum(a.nbytes for a in (ep.rgb, ep.affordance, ep.traj3d, ep.traj2d, ep.ee_pos, ep.joint_pos))
-        need += ep.depth.nbytes if ep.depth is not None else 0
+    disk). A bag's episode file holds its frames compressed at the stored size: less than the bag, except for a
+    bag of small compressed images stored larger, so the bound is the bags' size plus 10 MB."""
+    need = 10 << 20
+    for b in bags:
+        try:
+            need += sum(p.stat().st_size for p in b.rglob("*") if p.is_file()) if b.is_dir() else b.stat().st_size
+        except OSError:
+            continue  # the worker reports the bag
     free = shutil.disk_usage(output.parent).free
-    if free < need + (1 << 20):
+    if free < need:
         raise AdlError(f"no space left on device writing {output} (needs up to {need / 1e6:.1f} MB, "
                        f"{free / 1e6:.1f} MB free)")
 

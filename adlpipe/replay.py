@@ -15,6 +15,7 @@ scored too, as the reference. Works on bags recorded by adlpipe.record (their fr
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 from collections import defaultdict
@@ -35,34 +36,54 @@ from .errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS, load_policy
 
 
-def _replay_one(job: tuple) -> tuple[str, str, bool]:
+def _replay_one(job: tuple) -> tuple[str, str, str, bool]:
     from .sim.episode import replay_trajectory, spec_from_objects
 
     label, name, task, names, objects, traj3d, duration = job
     spec = spec_from_objects(task, names, objects)
     ok, _ = replay_trajectory(spec, traj3d, duration)
-    return label, task, ok
+    return label, name, task, ok
 
 
-def _closed_loop_one(job: tuple) -> tuple[str, str, bool]:
+def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool]:
     """Closed-loop replay of one episode with one model (runs in a pool process: loads the model itself)."""
     from .sim.episode import replay_closed_loop, spec_from_objects
 
-    label, model_dir, checkpoint, ep, steps, execute, seed = job
+    label, model_dir, checkpoint, ep, camera_hz, steps, execute, seed = job
     torch.set_num_threads(1)
     policy, ck = load_policy(Path(model_dir) / checkpoint)
+    cfg = policy.cfg
     norm = Normalizer(ck["stats"])
     gen = torch.Generator().manual_seed(seed)
-    size = ep.rgb.shape[0]
 
-    def plan(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        obs = observation_from_arrays(rgb, ep.affordance, depth, policy.cfg.image_size, policy.cfg.use_depth)
+    def plan(frames: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        obs = np.concatenate([observation_from_arrays(rgb, ep.affordance, depth, cfg.image_size, cfg.use_depth)
+                              for rgb, depth in frames])
         pred = norm.unnormalize(policy.predict(torch.from_numpy(obs)[None], steps, None, gen))
         return pred[0, :, 2:].numpy()
 
     spec = spec_from_objects(ep.task, ep.object_names, ep.objects)
-    ok, _ = replay_closed_loop(spec, plan, ep.duration_s, len(ep.traj3d), execute, size)
-    return label, ep.task, ok
+    ok, _ = replay_closed_loop(spec, plan, ep.duration_s, cfg.rate_hz, execute, cfg.n_obs, ep.rgb.shape[0],
+                               camera_hz)
+    return label, ep.name, ep.task, ok
+
+
+def training_summary(models: list[Path]) -> dict[str, dict]:
+    """Each model's convergence as training wrote it (metrics.json), for the report."""
+    out = {}
+    for d in models:
+        try:
+            m = json.loads((d / "metrics.json").read_text())
+        except (OSError, ValueError):
+            continue  # a model folder without metrics: nothing to say about its convergence
+        out[d.name] = {k: m.get(k) for k in ("converged", "val_px_best", "optimizer_steps", "epochs")}
+    return out
+
+
+def camera_rate(f: h5py.File, name: str) -> float:
+    """The recorded camera rate of an episode (median frame interval), at which closed-loop replay renders."""
+    t = f[schema.EPISODES][name]["frames/t"][()]
+    return float(1.0 / np.median(np.diff(t))) if len(t) > 1 else 15.0
 
 
 def steps_for(family: str, fm_steps: list[int], dp_steps: list[int]) -> list[int]:
@@ -105,8 +126,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-episodes", type=POSITIVE, help="replay at most this many test episodes")
     p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1))
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
-    p.add_argument("--closed-loop", type=NON_NEGATIVE, metavar="TA", default=0,
-                   help="closed loop: re-plan from a new camera image every TA waypoints (0: open loop, default)")
+    p.add_argument("--closed-loop", type=POSITIVE, metavar="TA", nargs="+",
+                   help="closed loop, for models trained with train --closed-loop: execute TA of the predicted "
+                   "waypoints, then re-plan from new camera frames; several TA values are a sweep (e.g. 4 8 16)")
     p.add_argument("--metrics", type=Path, default=Path("metrics/replay.json"), help="overall success per policy")
     p.add_argument("--details", type=Path, default=Path("metrics/replay_details.json"), help="success per task")
     p.add_argument("--table", type=Path, default=Path("reports/table2.md"))
@@ -121,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         raise AdlError("the test split is empty: nothing to replay")
     with schema.open_dataset(args.data, names) as f:
         eps = [schema.read_episode(f, n) for n in names]
+        rates = [camera_rate(f, n) for n in names]
     for ep in eps:
         if ep.task not in TASKS:
             raise AdlError(f"{ep.source_path}: task {ep.task!r} is not a task of the MuJoCo ADL world")
@@ -129,15 +152,22 @@ def main(argv: list[str] | None = None) -> int:
             raise AdlError(f"{ep.source_path}: frames {sorted(unknown)} are not objects of the ADL world; "
                            "replay works on bags recorded by adlpipe.record")
     if args.closed_loop:
+        if not args.models:
+            raise AdlError("--closed-loop needs --models")
         worker = _closed_loop_one
         jobs = []
         for d in args.models:
             policy = load_policy(d / checkpoint)[0]
+            if not policy.cfg.closed_loop:
+                raise AdlError(f"{d}: trained on first frames only; closed loop needs a model trained with "
+                               "python -m adlpipe.train --closed-loop")
             for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
-                label = f"{label_of(d, policy.default_method, policy.family, steps)}/closed-loop-{args.closed_loop}"
-                jobs += [(label, str(d), checkpoint, ep, steps, args.closed_loop, args.seed) for ep in eps]
-        if not jobs:
-            raise AdlError("--closed-loop needs --models")
+                for ta in args.closed_loop:
+                    if ta > policy.cfg.horizon:
+                        raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
+                    label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}"
+                    jobs += [(label, str(d), checkpoint, ep, rate, steps, ta, args.seed)
+                             for ep, rate in zip(eps, rates, strict=True)]
     else:
         worker = _replay_one
         trajs = {"demo": np.stack([ep.traj3d for ep in eps])}
@@ -146,10 +176,12 @@ def main(argv: list[str] | None = None) -> int:
         jobs = [(label, ep.name, ep.task, ep.object_names, ep.objects, traj[i], ep.duration_s)
                 for label, traj in trajs.items() for i, ep in enumerate(eps)]
     wins: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
+    per_episode: dict[str, dict[str, bool]] = defaultdict(dict)
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
-        for label, task, ok in tqdm(pool.map(worker, jobs, chunksize=4), total=len(jobs), desc="replay",
-                                    unit="ep", file=sys.stderr, disable=None):
+        for label, name, task, ok in tqdm(pool.map(worker, jobs, chunksize=4), total=len(jobs), desc="replay",
+                                          unit="ep", file=sys.stderr, disable=None):
             wins[label][task].append(ok)
+            per_episode[label][name] = bool(ok)
     result = {}
     for label, per in wins.items():
         every = [o for v in per.values() for o in v]
@@ -160,11 +192,14 @@ def main(argv: list[str] | None = None) -> int:
     for label, r in result.items():
         cells = " | ".join(f"{100 * r['per_task'].get(t, float('nan')):.0f}" for t in tasks)
         lines.append(f"| {label} | {100 * r['overall']:.0f} | {cells} |")
-    mode = f"closed-loop (re-plan every {args.closed_loop} waypoints)" if args.closed_loop else "open-loop"
+    mode = ("closed-loop (execute Ta of the predicted waypoints, then re-plan)" if args.closed_loop
+            else "open-loop")
     title = (f"# Success rate (%) of {mode} execution in MuJoCo, test split, {args.checkpoint} checkpoints\n\n"
              "Success: the task's predicate, with any contact force on the manikin above 20 N a failure.\n\n")
     write_all_atomic({
-        args.details: json_text({"episodes": len(eps), "checkpoint": args.checkpoint, "success": result}),
+        args.details: json_text({"episodes": len(eps), "checkpoint": args.checkpoint, "success": result,
+                                 "tasks": {ep.name: ep.task for ep in eps}, "per_episode": per_episode,
+                                 "training": training_summary(args.models)}),
         args.metrics: json_text({"episodes": len(eps), "checkpoint": args.checkpoint,
                                  "success": {label: round(r["overall"], 4) for label, r in result.items()}}),
         args.table: title + "\n".join(lines) + "\n"})

@@ -98,6 +98,34 @@ def claims(ev: dict, rp: dict) -> list[str]:
     return out
 
 
+def closed_loop_lines(open_rp: dict, cl: dict) -> list[str]:
+    """Closed-loop and open-loop success per task on the same test episodes (those the closed loop replayed)."""
+    names = sorted({n for per in cl.get("per_episode", {}).values() for n in per})
+    tasks = {**open_rp.get("tasks", {}), **cl.get("tasks", {})}
+    if not names:
+        return []
+    task_list = sorted({tasks.get(n, "?") for n in names})
+    rows = [(f"open loop: {label} (first frame -> whole trajectory)", open_rp.get("per_episode", {}).get(label, {}))
+            for label in ("fm_cnn/euler-1", "dp_cnn/ddpm-16", "bc_cnn", "demo")]
+    rows += [(f"closed loop: {label}", per) for label, per in cl["per_episode"].items()]
+    lines = ["| policy | overall | " + " | ".join(task_list) + " |", "| --- | ---: |" + " ---: |" * len(task_list)]
+    for label, per in rows:
+        got = [per[n] for n in names if n in per]
+        if len(got) < len(names):
+            continue  # not replayed on these episodes
+        cells = []
+        for t in task_list:
+            v = [per[n] for n in names if tasks.get(n) == t]
+            cells.append(f"{100 * sum(v) / len(v):.0f}")
+        lines.append(f"| {label} | {100 * sum(got) / len(got):.0f} | " + " | ".join(cells) + " |")
+    training = cl.get("training", {})
+    late = [m for m, t in training.items() if not t.get("converged")]
+    lines += ["", f"The same {len(names)} test episodes for every row. Closed-loop models: To frames in, Tp waypoints "
+              "out at a fixed rate, Ta executed before re-planning (Ta = Tp: one plan per Tp waypoints). "
+              + (f"Not converged: {', '.join(late)}." if late else "All closed-loop models converged.")]
+    return lines
+
+
 def convergence_lines(ev: dict) -> list[str]:
     lines = ["| model | optimiser steps | val px best (epoch) | val px last | converged |",
              "| --- | ---: | ---: | ---: | --- |"]
@@ -176,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     p = Parser("python -m adlpipe.report", __doc__)
     p.add_argument("--eval", type=Path, default=Path("metrics/eval_details.json"))
     p.add_argument("--replay", type=Path, default=Path("metrics/replay_details.json"))
+    p.add_argument("--closed-loop", type=Path, help="replay details of closed-loop policies (optional)")
     p.add_argument("--train-logs", type=Path, default=Path("metrics/train"), help="folder of <model>.csv logs")
     p.add_argument("--table1", type=Path, default=Path("reports/table1.md"))
     p.add_argument("--table2", type=Path, default=Path("reports/table2.md"))
@@ -196,6 +225,8 @@ def main(argv: list[str] | None = None) -> int:
              "A model is converged when its best val px fell by at most 2 % over the last fifth of training; a claim "
              "involving a model that is not is never stated as a finding.", "",
              "## Figures", "", *[f"![{f.stem}](figures/{f.name})" for f in figs], ""]
+    if args.closed_loop is not None and args.closed_loop.exists():
+        parts += ["## Closed loop vs open loop (success %)", "", *closed_loop_lines(rp, _load(args.closed_loop)), ""]
     for t in (args.table1, args.table2):
         if t.exists():
             parts += [t.read_text().replace("# ", "## ", 1), ""]

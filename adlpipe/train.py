@@ -30,7 +30,7 @@ from tqdm import tqdm
 from .atomic import atomic_path, write_json_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, float_range, int_range
 from .dataset import schema
-from .dataset.loader import Normalizer, TrajectoryDataset, compute_stats
+from .dataset.loader import Augment, Normalizer, TrajectoryDataset, WindowDataset, Windows, compute_stats
 from .dataset.splits import load_split, make_split
 from .errors import AdlError, run_cli
 from .lock import exclusive
@@ -110,32 +110,47 @@ def split_validation(tasks: dict[str, str], fraction: float, seed: int) -> tuple
 def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
           lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = 50, seed: int = 0,
           log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
-          val_fraction: float = 0.1, val_every: int = 5) -> dict:
-    """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests)."""
+          val_fraction: float = 0.1, val_every: int = 5, augment: bool = True) -> dict:
+    """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests).
+    A closed-loop config (cfg.rate_hz > 0) trains on windows of every frame; augmentation is for training only."""
     out.mkdir(parents=True, exist_ok=True)
     split = load_split(split_path)
     if not split["train"]:
         raise AdlError(f"{split_path}: the train split is empty")
     with schema.open_dataset(data, split["train"] + split["test"]) as f:
         horizon = int(f.attrs["n_waypoints"])
+        size = int(f.attrs["image_size"])
         tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
-    if horizon != cfg.horizon:
+    if horizon != cfg.horizon and not cfg.closed_loop:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
     train_names, val_names = split_validation(tasks, val_fraction, seed)
     stats = compute_stats(str(data), train_names)
-    train_ds = TrajectoryDataset(str(data), train_names, stats, cfg.image_size, cfg.use_depth)
-    test_ds = TrajectoryDataset(str(data), split["test"] or train_names, stats, cfg.image_size, cfg.use_depth)
+    aug = Augment(size) if augment else None
+    if cfg.closed_loop:
+        w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz)
+
+        def dataset(names: list[str], **kw: object) -> WindowDataset:
+            return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, **kw)
+
+        train_ds = dataset(train_names, augment=aug, per_episode=True)
+        test_ds = dataset(split["test"] or train_names, frames_per_episode=4)
+        val_ds = dataset(val_names, frames_per_episode=4) if val_names else None
+    else:
+        train_ds = TrajectoryDataset(str(data), train_names, stats, cfg.image_size, cfg.use_depth, augment=aug,
+                                     seed=seed)
+        test_ds = TrajectoryDataset(str(data), split["test"] or train_names, stats, cfg.image_size, cfg.use_depth)
+        val_ds = (TrajectoryDataset(str(data), val_names, stats, cfg.image_size, cfg.use_depth, cache=False)
+                  if val_names else None)
     norm = Normalizer(stats)
     val_obs, val_px_target = None, None
-    if val_names:
-        val_ds = TrajectoryDataset(str(data), val_names, stats, cfg.image_size, cfg.use_depth, cache=False)
+    if val_ds is not None:
         items = [val_ds[i] for i in range(len(val_ds))]
         val_obs = torch.stack([o for o, _ in items])
         val_px_target = norm.unnormalize(torch.stack([a for _, a in items]))[..., :2]
     steps_per_epoch = math.ceil(len(train_ds) / batch_size)
     hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
                "warmup_steps": warmup_steps, "seed": seed, "data": str(data), "split": sorted(split["train"]),
-               "val_fraction": val_fraction, "val_every": val_every}
+               "val_fraction": val_fraction, "val_every": val_every, "augment": augment}
 
     torch.manual_seed(seed)
     policy = Policy(cfg)
@@ -168,6 +183,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     for epoch in bar:
         t0 = time.time()
         gen = torch.Generator().manual_seed(seed * 100_003 + epoch)  # the epoch's randomness: resumable exactly
+        train_ds.epoch = epoch  # the windows drawn and the augmentation, too
         loader = DataLoader(train_ds, batch_size=batch_size, shuffle=True, generator=gen)
         policy.train()
         total, n = 0.0, 0
@@ -245,6 +261,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="part of the train split held out for validation and checkpoint selection (0: none)")
     p.add_argument("--val-every", type=POSITIVE, default=5, help="measure val px every N epochs (and at the last)")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and train from scratch")
+    p.add_argument("--no-augment", action="store_true",
+                   help="train without random shifts and colour jitter (on by default; never at evaluation)")
+    p.add_argument("--closed-loop", action="store_true",
+                   help="train on every frame: --obs-frames frames in, the next --action-steps waypoints at "
+                   "--rate-hz out (for replay --closed-loop); default: the first frame -> the whole trajectory")
+    p.add_argument("--obs-frames", type=int_range(1, 16), default=2, help="closed loop: To (default 2)")
+    p.add_argument("--action-steps", type=int_range(4, 256), default=16,
+                   help="closed loop: Tp, a multiple of 4 (default 16)")
+    p.add_argument("--rate-hz", type=float_range(0.1, 1000), default=10.0,
+                   help="closed loop: waypoint rate (default 10 Hz)")
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -258,7 +284,12 @@ def main(argv: list[str] | None = None) -> int:
                 (out / name).unlink(missing_ok=True)
     with schema.open_dataset(args.data, names=[]) as f:  # train() checks the split's episodes
         horizon = int(f.attrs["n_waypoints"])
-    if horizon % 4:  # the U-Net halves the sequence twice; the transformers take any length
+    if args.closed_loop:
+        if args.action_steps % 4:
+            raise AdlError(f"--action-steps {args.action_steps}: the U-Net needs a multiple of 4")
+        horizon = args.action_steps
+        overrides.update(n_obs=args.obs_frames, rate_hz=args.rate_hz)
+    elif horizon % 4:  # the U-Net halves the sequence twice; the transformers take any length
         raise AdlError(f"{args.data}: {horizon} waypoints per trajectory; the models need a multiple of 4 "
                        "(re-ingest with --waypoints 32)")
     overrides["horizon"] = horizon
@@ -268,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     with exclusive(out):
         m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay,
                   args.warmup_steps, args.seed, args.log or out / "log.csv", progress=True,
-                  val_fraction=args.val_fraction, val_every=args.val_every)
+                  val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment)
     val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"
            f"{'' if m['converged'] else ', NOT CONVERGED'}" if m["val_px_best"] is not None else "")
     print(f"{out}: {cfg.model} trained {m['epochs']} epochs ({m['optimizer_steps']} steps) in {m['seconds']:.0f} s, "

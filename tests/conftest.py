@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -40,6 +41,16 @@ def ingested(mcap_bags: list[Path], tmp_path_factory: pytest.TempPathFactory) ->
     out = tmp_path_factory.mktemp("h5") / "adl.h5"
     run_module("ingest", *mcap_bags, "-o", out, "--size", "64", check=True)
     return out
+
+
+def copy_dataset(src: Path, dst: Path) -> Path:
+    """Copy a dataset: its index and the folder of episode files it links to (kept under the same name beside the
+    copy, as the links are relative)."""
+    shards = src.with_name(src.stem + ".shards")
+    shutil.copy2(src, dst)
+    if shards.exists() and not (dst.parent / shards.name).exists():
+        shutil.copytree(shards, dst.parent / shards.name)
+    return dst
 
 
 def one_line_error(proc: subprocess.CompletedProcess) -> str:

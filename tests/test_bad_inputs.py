@@ -17,7 +17,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import REPO, one_line_error
+from conftest import REPO, copy_dataset, one_line_error
 
 from adlpipe.errors import run_cli
 from adlpipe.policy.models import ModelConfig
@@ -47,7 +47,7 @@ def world(ingested: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str,
     """A valid dataset, split and tiny trained model, to pair with one bad input at a time."""
     root = tmp_path_factory.mktemp("bad_inputs")
     data = root / "adl.h5"
-    shutil.copy(ingested, data)
+    copy_dataset(ingested, data)
     with h5py.File(data) as f:
         names = sorted(f["episodes"])
     split = root / "split.json"
@@ -96,7 +96,7 @@ def test_a_bad_dataset_is_one_line(capsys: pytest.CaptureFixture, world: dict, t
 def test_a_dataset_with_a_nan_trajectory_is_refused(capsys: pytest.CaptureFixture, world: dict,
                                                     tmp_path: Path) -> None:
     data = tmp_path / "nan.h5"
-    shutil.copy(world["data"], data)
+    copy_dataset(world["data"], data)
     with h5py.File(data, "a") as f:
         name = sorted(f["episodes"])[0]
         t = f["episodes"][name]["traj3d"]

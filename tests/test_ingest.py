@@ -9,7 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import PUBLIC_BAGS, one_line_error, run_module
+from conftest import PUBLIC_BAGS, copy_dataset, one_line_error, run_module
 
 from adlpipe.bags.topics import TopicMap
 from adlpipe.dataset import schema
@@ -91,7 +91,7 @@ def test_projection_lands_on_a_rendered_marker(ingested: Path) -> None:
 
 def test_reingest_is_a_no_op(mcap_bags: list[Path], ingested: Path, tmp_path: Path) -> None:
     copy = tmp_path / "adl.h5"
-    shutil.copy2(ingested, copy)
+    copy_dataset(ingested, copy)
     before = _sha(copy)
     proc = run_module("ingest", *mcap_bags, "-o", copy, "--size", "64", check=True)
     assert "0 episode(s) added, 3 already present" in proc.stdout

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import REPO, run_module
+from conftest import REPO, one_line_error, run_module
 
 MODELS = ["fm_cnn", "fm_cnn_velocity", "fm_transformer", "dp_cnn", "bc_cnn", "bc_transformer"]
 
@@ -41,6 +41,7 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> Path:
     params["train"].update(epochs=2, threads=1)
     params["evaluate"].update(steps="1 16", best_of=2, repeats=2)
     params["replay"].update(max_episodes=10, workers=2)
+    params["closed_loop"].update(execute="8 16", max_episodes=3)
     (root / "params.yaml").write_text(yaml.safe_dump(params))
     subprocess.run(["git", "init", "-q"], cwd=root, check=True)
     dvc(root, "init", "-q")
@@ -74,6 +75,8 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
         assert ev["training"][model]["optimizer_steps"] == ev["training"]["fm_cnn"]["optimizer_steps"]
     report = (pipeline / "reports" / "report.md").read_text()
     assert "## Success rate" in report and "FM-1 about as accurate as DP-16" in report
+    assert "## Closed loop vs open loop" in report and "| closed loop: fm_cnn/euler-1/Ta-8 |" in report
+    assert "| open loop: fm_cnn/euler-1 (first frame -> whole trajectory) |" in report
     assert "FM better than BC (U-Net for both" in report and "FM-1 much faster than DP-16" in report
     assert "px: pixels of the 32 px stored image" in report
     for fig in ("loss_fm_vs_dp", "val_px_vs_epoch", "px_vs_steps", "ms_vs_steps"):
@@ -141,12 +144,20 @@ def test_inspect_writes_a_readable_rerun_recording(pipeline: Path, tmp_path: Pat
 
 
 def test_closed_loop_replay_replans_from_new_images(pipeline: Path, tmp_path: Path) -> None:
-    metrics = tmp_path / "cl.json"
+    details = json.loads((pipeline / "metrics" / "replay_closed_loop_details.json").read_text())
+    labels = {f"{m}/Ta-{ta}" for m in ("fm_cnn/euler-1", "dp_cnn/ddpm-16", "bc_cnn") for ta in (8, 16)}
+    assert set(details["success"]) == labels
+    assert all(len(v) == 3 for v in details["per_episode"].values())
+    assert details["training"]["fm_cnn"]["optimizer_steps"] == json.loads(
+        (pipeline / "models" / "fm_cnn" / "metrics.json").read_text())["optimizer_steps"]  # the same budget
+    ck = __import__("torch").load(pipeline / "models" / "closed_loop" / "fm_cnn" / "best.pt", weights_only=True)
+    assert ck["config"]["n_obs"] == 2 and ck["config"]["horizon"] == 16 and ck["config"]["rate_hz"] == 10
+
+
+def test_closed_loop_replay_refuses_a_first_frame_model(pipeline: Path, tmp_path: Path) -> None:
     proc = run_module("replay", "--models", pipeline / "models" / "fm_cnn", "--data", pipeline / "data" / "adl.h5",
-                      "--closed-loop", "8", "--max-episodes", "3", "--workers", "1", "--fm-steps", "1",
-                      "--metrics", metrics, "--details", tmp_path / "cl_details.json", "--table", tmp_path / "cl.md",
-                      check=True)
-    assert "fm_cnn/euler-1/closed-loop-8: success" in proc.stdout
-    result = json.loads((tmp_path / "cl_details.json").read_text())["success"]
-    assert list(result) == ["fm_cnn/euler-1/closed-loop-8"] and result["fm_cnn/euler-1/closed-loop-8"]["n"] == 3
-    assert "closed-loop (re-plan every 8 waypoints)" in (tmp_path / "cl.md").read_text()
+                      "--closed-loop", "8", "--max-episodes", "1", "--metrics", tmp_path / "m.json",
+                      "--details", tmp_path / "d.json", "--table", tmp_path / "t.md")
+    line = one_line_error(proc)
+    assert "trained on first frames only" in line and "--closed-loop" in line
+    assert not (tmp_path / "m.json").exists()

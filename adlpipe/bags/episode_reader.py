@@ -1,5 +1,6 @@
 """Reads what an episode needs from one bag, streaming: the first camera frame and its camera info, the depth and
-affordance images nearest it, the whole tf tree over time, joint states and the task name.
+affordance images nearest it, the whole tf tree over time, joint states and the task name; with a frame sink, every
+camera, depth and affordance image too, handed over one at a time as its message is read.
 
 Only messages on topics of the topic map are decoded, images only when they may be kept, so memory stays flat in
 bag length. Every optional topic of the map may be absent from the bag or set to null; a message whose definition
@@ -10,17 +11,26 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
 from ..errors import AdlError
 from ..geometry import TfBuffer, pose_matrix
-from .images import DEPTH_TYPES, decode_image
+from .images import DEPTH_TYPES, decode_depth, decode_image
 from .reader import BagSource, TopicInfo
 from .topics import TopicMap
 
 IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}
 TF_TYPES = {"tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"}  # tf/tfMessage: old ROS1 bags, same layout
+
+
+class FrameSink(Protocol):
+    """Takes every image as it is read (adlpipe.dataset.frames.FrameWriter); stamps are header stamps, s."""
+
+    def rgb(self, t: float, image: np.ndarray) -> None: ...
+    def depth(self, t: float, metres: np.ndarray) -> None: ...
+    def affordance(self, t: float, image: np.ndarray) -> None: ...
 
 
 @dataclass
@@ -114,7 +124,8 @@ def check_counts(bag: Path, topics: dict, read: dict[str, int]) -> None:
 TF_LEAD_NS = 1_000_000_000  # tf before a segment's start: the poses the first image's lookups need
 
 
-def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None) -> BagReadout:
+def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None,
+             sink: FrameSink | None = None) -> BagReadout:
     """Stream the topics of the map once and keep what an episode needs; with a window (log time, ns), only what
     lies in it (one demonstration of several in the bag): static tf and the task name are kept from anywhere."""
     bag = src.path
@@ -125,7 +136,7 @@ def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None
         raise AdlError(f"{bag}: missing required topic(s) {', '.join(missing)}; the bag has: {have}")
     check_types(bag, topics, tm)
     wanted = [t for t in tm.required_topics() + tm.optional_topics() if t in topics]
-    state = _Streams(bag, tm)
+    state = _Streams(bag, tm, sink)
     read = dict.fromkeys(wanted, 0)
     lo, hi = window or (None, None)
     for topic, log_ns, decode in src.messages(wanted):
@@ -155,8 +166,8 @@ def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None
 class _Streams:
     """The state of one pass over a bag's messages."""
 
-    def __init__(self, bag: Path, tm: TopicMap) -> None:
-        self.bag, self.tm = bag, tm
+    def __init__(self, bag: Path, tm: TopicMap, sink: FrameSink | None = None) -> None:
+        self.bag, self.tm, self.sink = bag, tm, sink
         self.image: np.ndarray | None = None
         self.t_img: float | None = None
         self.camera_frame = ""
@@ -176,20 +187,30 @@ class _Streams:
     def take(self, topic: str, decode: object) -> None:
         tm = self.tm
         if topic == tm.image:
-            if self.image is None:
+            if self.image is None or self.sink:
                 msg = decode()
-                self.image, self.t_img = decode_image(msg, self.where(topic)), stamp_s(msg)
-                self.camera_frame = check_name(str(msg.header.frame_id), "frame", self.where(topic))
+                image, t = decode_image(msg, self.where(topic)), stamp_s(msg)
+                if self.image is None:
+                    self.image, self.t_img = image, t
+                    self.camera_frame = check_name(str(msg.header.frame_id), "frame", self.where(topic))
+                elif image.shape[:2] != self.image.shape[:2]:
+                    raise AdlError(f"{self.where(topic)}: image size changes from {self.image.shape[1]}x"
+                                   f"{self.image.shape[0]} to {image.shape[1]}x{image.shape[0]} within the bag")
+                if self.sink:
+                    self.sink.rgb(t, image)
         elif topic == tm.camera_info:
             if self.info is None:
                 self.info = decode()
         elif topic in (tm.depth, tm.affordance):
-            if topic not in self.settled:
+            if topic not in self.settled or self.sink:
                 msg = decode()
                 t = stamp_s(msg)
-                (self.depth if topic == tm.depth else self.aff).offer(t, msg, self.t_img)
-                if self.t_img is not None and t > self.t_img + tm.sync_tolerance_s:
-                    self.settled.add(topic)
+                if topic not in self.settled:
+                    (self.depth if topic == tm.depth else self.aff).offer(t, msg, self.t_img)
+                    if self.t_img is not None and t > self.t_img + tm.sync_tolerance_s:
+                        self.settled.add(topic)
+                if self.sink:
+                    self._to_sink(topic, t, msg)
         elif topic in (tm.tf, tm.tf_static):
             self._tf(decode().transforms, static=topic == tm.tf_static, where=self.where(topic))
         elif topic == tm.joints:
@@ -202,6 +223,16 @@ class _Streams:
                 self.joint_pos.append(pos)
         elif topic == tm.task and self.task is None:
             self.task = str(decode().data)
+
+    def _to_sink(self, topic: str, t: float, msg: object) -> None:
+        where = self.where(topic)
+        if topic == self.tm.depth:
+            self.sink.depth(t, decode_depth(msg, where))
+            return
+        a = decode_image(msg, where)
+        if a.ndim != 2:
+            raise AdlError(f"{where}: affordance map must be single channel (32FC1)")
+        self.sink.affordance(t, a)
 
     def _tf(self, transforms: list, static: bool, where: str) -> None:
         for tr in transforms:

@@ -25,6 +25,7 @@ class TopicMap:
     ee_frame: str = "ee_link"
     sync_tolerance_s: float = 0.05  # depth/affordance/ee matched to the first image within this
     trajectory_end_s: float | None = None  # seconds after the first image; null: to the last ee pose
+    gripper_joint: str | None = "finger_left"  # joint stored per frame as the gripper state (null: none)
     max_tf_gap_s: float = 0.2  # a longer gap in the end-effector tf is an error (or, with --allow-tf-gaps, a note)
     # Several demonstrations in one bag (adlpipe.bags.segments): a start/stop marker topic, or motion.
     segment_topic: str | None = None  # std_msgs/String "start"/"stop" or std_msgs/Bool true/false

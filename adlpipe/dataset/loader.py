@@ -8,6 +8,8 @@ with min/max statistics of the train split only.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import h5py
@@ -15,6 +17,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from ..geometry import project
 from . import schema
 
 DEPTH_SCALE_M = 2.0  # depth / 2 m - 1 keeps the table-top range inside [-1, 1]
@@ -66,16 +69,18 @@ def observation_from_arrays(rgb: np.ndarray, affordance: np.ndarray, depth: np.n
 
 
 class TrajectoryDataset(Dataset):
-    """Lazy: the HDF5 file is opened once per worker process on first access; items are cached per worker."""
+    """The seed's ADL setting: the first frame -> the whole trajectory. Lazy: the HDF5 file is opened once per
+    worker process on first access; items are cached per worker (before augmentation, which differs per epoch)."""
 
     def __init__(self, path: str, names: list[str], stats: dict, image_size: int, use_depth: bool = False,
-                 cache: bool = True) -> None:
+                 cache: bool = True, augment: Augment | None = None, seed: int = 0) -> None:
         self.path, self.names = str(path), list(names)
         self.norm = Normalizer(stats)
         self.image_size, self.use_depth, self.cache = image_size, use_depth, cache
+        self.augment, self.seed, self.epoch = augment, seed, 0
         self._file: h5py.File | None = None
         self._pid = -1
-        self._items: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._items: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.names)
@@ -92,15 +97,148 @@ class TrajectoryDataset(Dataset):
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         if i in self._items:
-            return self._items[i]
-        g = self._handle()[schema.EPISODES][self.names[i]]
-        obs = torch.from_numpy(observation(g, self.image_size, self.use_depth))
-        act = self.norm.normalize(torch.from_numpy(raw_target(g)))
-        if self.cache:
-            self._items[i] = (obs, act)
-        return obs, act
+            obs, target = self._items[i]
+        else:
+            g = self._handle()[schema.EPISODES][self.names[i]]
+            obs, target = observation(g, self.image_size, self.use_depth), raw_target(g)
+            if self.cache:
+                self._items[i] = (obs, target)
+        if self.augment is not None:
+            rng = np.random.default_rng([self.seed, self.epoch, i, 1])
+            obs, target = self.augment(obs, target, rng, 5 if self.use_depth else 4)
+        return torch.from_numpy(obs), self.norm.normalize(torch.from_numpy(target))
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_file"], state["_items"] = None, {}
         return state
+
+
+class Augment:
+    """Training-time augmentation of an observation and its target, as Diffusion Policy's random crop and colour
+    jitter: a random shift of the whole image stack (edges replicated) by up to `shift` of its width, with the pixel
+    targets moved by the same amount at the stored size, and brightness, contrast and saturation jitter of the RGB
+    channels. The affordance map and depth move with the image and are not jittered."""
+
+    def __init__(self, stored_size: int, shift: float = 0.06, jitter: float = 0.2) -> None:
+        self.stored_size, self.shift, self.jitter = stored_size, shift, jitter
+
+    def __call__(self, obs: np.ndarray, target: np.ndarray, rng: np.random.Generator,
+                 channels_per_frame: int) -> tuple[np.ndarray, np.ndarray]:
+        c, s, _ = obs.shape
+        pad = max(1, int(round(self.shift * s)))
+        dx, dy = (int(v) for v in rng.integers(-pad, pad + 1, 2))
+        padded = np.pad(obs, ((0, 0), (pad, pad), (pad, pad)), mode="edge")
+        obs = padded[:, pad - dy:pad - dy + s, pad - dx:pad - dx + s].copy()
+        target = target.copy()
+        target[:, 0] += dx * self.stored_size / s
+        target[:, 1] += dy * self.stored_size / s
+        b, k, sat = 1 + rng.uniform(-self.jitter, self.jitter, 3)
+        for f in range(0, c, channels_per_frame):  # the same jitter for every frame of the stack
+            rgb = (obs[f:f + 3] + 1) / 2
+            gray = rgb.mean(0, keepdims=True)
+            rgb = gray + sat * (rgb - gray)
+            rgb = (rgb - rgb.mean()) * k + rgb.mean()
+            obs[f:f + 3] = np.clip(rgb * b, 0, 1) * 2 - 1
+        return obs, target
+
+
+class _EpisodeFiles:
+    """Episode files opened directly (not through the index's links), a few at a time, per process."""
+
+    def __init__(self, index: str, names: list[str], limit: int = 32) -> None:
+        from . import shards
+
+        with h5py.File(index, "r") as f:
+            self.files = {n: str(shards.episode_file(Path(index), f, n)) for n in names}
+        self.limit = limit
+        self._open: dict[str, h5py.File] = {}
+        self._pid = -1
+
+    def group(self, name: str) -> h5py.Group:
+        if self._pid != os.getpid():  # a forked worker must not share the parent's handles
+            self._open, self._pid = {}, os.getpid()
+        path = self.files[name]
+        if path not in self._open:
+            if len(self._open) >= self.limit:
+                self._open.pop(next(iter(self._open))).close()
+            self._open[path] = h5py.File(path, "r")
+        return self._open[path][schema.EPISODES][name]
+
+    def __getstate__(self) -> dict:
+        return {"files": self.files, "limit": self.limit, "_open": {}, "_pid": -1}
+
+
+@dataclass(frozen=True)
+class Windows:
+    """The closed-loop sample: observation frames t-n_obs+1..t, and the end effector's next `horizon` waypoints
+    at `rate_hz` (t + 1/rate .. t + horizon/rate)."""
+
+    n_obs: int = 2
+    horizon: int = 16
+    rate_hz: float = 10.0
+
+
+class WindowDataset(Dataset):
+    """Every frame of every episode as a training window (Diffusion Policy's sequence sampler): observation frames
+    t-To+1..t stacked as channels (the first frame repeated before the start), target the next Tp waypoints
+    (u, v, x, y, z) at a fixed rate, the last pose repeated after the end, normalised like the trajectories.
+
+    per_episode: an epoch draws one random frame of each episode (seeded by epoch and episode), so a closed-loop
+    model takes as many optimiser steps per epoch as a first-frame one; otherwise every frame is an item, or
+    `frames_per_episode` evenly spaced ones (a fixed validation or test set)."""
+
+    def __init__(self, index: str | Path, names: list[str], stats: dict, image_size: int, windows: Windows,
+                 use_depth: bool = False, augment: Augment | None = None, per_episode: bool = False,
+                 frames_per_episode: int | None = None, seed: int = 0) -> None:
+        self.names, self.w = list(names), windows
+        self.norm = Normalizer(stats)
+        self.image_size, self.use_depth, self.augment = image_size, use_depth, augment
+        self.per_episode, self.seed, self.epoch = per_episode, seed, 0
+        self.files = _EpisodeFiles(str(index), self.names)
+        lengths = []
+        for n in self.names:  # windows start at frames up to the end of the demonstration
+            g = self.files.group(n)
+            lengths.append(int(np.searchsorted(g["frames/t"][()], float(g.attrs["duration_s"]), "right")))
+        self.lengths = np.maximum(np.array(lengths, int), 1)
+        if frames_per_episode:
+            self.items = [(e, int(k)) for e, n in enumerate(self.lengths)
+                          for k in np.unique(np.linspace(0, n - 1, frames_per_episode).round().astype(int))]
+        else:
+            self.items = [(e, k) for e, n in enumerate(self.lengths) for k in range(n)]
+
+    def __len__(self) -> int:
+        return len(self.names) if self.per_episode else len(self.items)
+
+    def window(self, i: int) -> tuple[int, int]:
+        if not self.per_episode:
+            return self.items[i]
+        rng = np.random.default_rng([self.seed, self.epoch, i])
+        return i, int(rng.integers(self.lengths[i]))
+
+    def task(self, i: int) -> str:
+        return str(self.files.group(self.names[self.window(i)[0]]).attrs["task"])
+
+    def raw(self, e: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(observation (To*C, S, S), target (Tp, 5) in pixels and metres) of frame k of episode e."""
+        from .frames import read_frame
+
+        g = self.files.group(self.names[e])
+        frames = []
+        for j in range(k - self.w.n_obs + 1, k + 1):
+            rgb, aff, depth = read_frame(g, max(j, 0), self.use_depth)
+            frames.append(observation_from_arrays(rgb, aff, depth, self.image_size, self.use_depth))
+        t = float(g["frames/t"][k]) + np.arange(1, self.w.horizon + 1) / self.w.rate_hz
+        s = g["series"]
+        ee_t, ee_p = s["ee_t"][()], s["ee_pos"][()]
+        xyz = np.stack([np.interp(t, ee_t, ee_p[:, d]) for d in range(3)], 1)  # clamped: the last pose repeats
+        uv = project(xyz, g["K"][()], g["T_base_camera"][()])
+        return np.concatenate(frames), np.concatenate([uv, xyz], 1).astype(np.float32)
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        e, k = self.window(i)
+        obs, target = self.raw(e, k)
+        if self.augment is not None:
+            rng = np.random.default_rng([self.seed, self.epoch, i, 1])
+            obs, target = self.augment(obs, target, rng, 5 if self.use_depth else 4)
+        return torch.from_numpy(obs.astype(np.float32)), self.norm.normalize(torch.from_numpy(target))

@@ -1,6 +1,11 @@
 """The HDF5 dataset schema, written down once (docs/hdf5_schema.md describes the same layout).
 
+A dataset is an index file (`adl.h5`) and a folder of episode files beside it (`adl.shards/<run>/<bag>.h5`, one
+per bag, one run folder per ingest: adlpipe.dataset.shards). The index links each episode group to its file
+(an HDF5 external link), so readers open the index and see every episode under /episodes.
+
     /                          attrs: format_version, n_waypoints, image_size
+    /catalog/{name,key,task,file}  one row per episode: what dedup and the split read without opening the files
     /episodes/<name>/          one group per bag (or per demonstration of a segmented bag);
                                <name> = "<task_slug>-<sha256[:16]>" [+ "-s<segment>"]
         attrs: task, source_path, source_sha256, source_format, duration_s, stamp0_ns, base_frame,
@@ -15,6 +20,7 @@
         objects      (M, 7)    float64   initial pose (x y z qw qx qy qz) in base_frame; attr names
         series/ee_t  (P,) float64 s from the first image; series/ee_pos (P, 3) base_frame
         series/joint_t (Q,) float64; series/joint_pos (Q, J) float64; attr joint_names
+        frames/...   every camera frame, synced (adlpipe.dataset.frames)
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ import numpy as np
 
 from ..errors import AdlError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: every frame, sharded; 1: the first frame only, one file
 EPISODES = "episodes"
 
 
@@ -96,6 +102,10 @@ def create_file(f: h5py.File, n_waypoints: int, image_size: int) -> None:
 def check_file(f: h5py.File, path: str, n_waypoints: int | None = None, image_size: int | None = None) -> None:
     """Refuse files of another format version or with other waypoint/image settings than asked for."""
     version = f.attrs.get("format_version")
+    if version == 1:
+        raise AdlError(f"{path}: dataset of format version 1 (first frame only); this adlpipe reads version "
+                       f"{FORMAT_VERSION} (every frame): re-ingest the bags into a new file "
+                       "(python -m adlpipe.ingest BAGS -o NEW.h5)")
     if version != FORMAT_VERSION or EPISODES not in f:
         raise AdlError(f"{path}: not an adlpipe dataset of format version {FORMAT_VERSION} (found {version})")
     for key, want in (("n_waypoints", n_waypoints), ("image_size", image_size)):
@@ -159,8 +169,9 @@ def check_episode(g: h5py.Group, where: str) -> None:
         raise AdlError(f"{where}: non-finite values (NaN or inf) in the stored trajectory; re-ingest the bag")
 
 
-def write_episode(f: h5py.File, ep: Episode) -> None:
-    g = f[EPISODES].create_group(ep.name)
+def write_episode(g: h5py.Group, ep: Episode) -> None:
+    """The episode's attributes, first-frame images, trajectories and series into its group (frames are written
+    by adlpipe.dataset.frames)."""
     for key in ("task", "source_path", "source_sha256", "source_format", "base_frame", "camera_frame"):
         g.attrs[key] = getattr(ep, key)
     g.attrs["duration_s"] = float(ep.duration_s)
@@ -211,6 +222,17 @@ def episode_names(f: h5py.File) -> list[str]:
 
 
 def episode_keys(f: h5py.File) -> set[str]:
-    """The re-ingest keys (bag sha256, and segment) of the episodes in the file."""
-    return {episode_key(str(g.attrs["source_sha256"]), int(g.attrs.get("segment", -1)))
-            for g in f[EPISODES].values()}
+    """The re-ingest keys (bag sha256, and segment) of the episodes in the dataset, from its catalog."""
+    return {row["key"] for row in read_catalog(f)}
+
+
+CATALOG = "catalog"
+CATALOG_FIELDS = ("name", "key", "task", "file")
+
+
+def read_catalog(f: h5py.File) -> list[dict[str, str]]:
+    """One row per episode: name, key (sha256[#segment]), task and its file relative to the index."""
+    if CATALOG not in f:
+        return []
+    cols = {k: [v.decode() if isinstance(v, bytes) else str(v) for v in f[CATALOG][k][()]] for k in CATALOG_FIELDS}
+    return [dict(zip(CATALOG_FIELDS, row, strict=True)) for row in zip(*cols.values(), strict=True)]

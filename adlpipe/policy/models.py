@@ -50,10 +50,17 @@ class ModelConfig:
     d_model: int = 64
     n_layers: int = 2
     n_heads: int = 4
+    n_obs: int = 1  # observation frames stacked as channels (closed loop: 2)
+    rate_hz: float = 0.0  # 0: first frame -> whole trajectory (the seed's ADL setting); > 0: next `horizon`
+    #                       waypoints at this rate from the current frame (closed loop, adlpipe.dataset.loader.Windows)
 
     @property
     def in_channels(self) -> int:
-        return 5 if self.use_depth else 4
+        return (5 if self.use_depth else 4) * self.n_obs
+
+    @property
+    def closed_loop(self) -> bool:
+        return self.rate_hz > 0
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -261,29 +262,42 @@ def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -
     return monitor.success(), np.array(path)
 
 
-def replay_closed_loop(spec: SceneSpec, plan: Callable[[np.ndarray, np.ndarray], np.ndarray], duration: float,
-                       n_waypoints: int, execute: int, image_size: int) -> tuple[bool, int]:
-    """Closed loop: render the scene, plan a whole trajectory (plan(rgb, depth) -> (N, 3) waypoints, timed from
-    the episode start like the training targets), execute the next `execute` waypoint intervals of it, re-plan from
-    a new image, ... The policy sees the scene as it is now (a knocked or slipped object changes the plan).
-    Returns (success, number of plans)."""
+def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[tuple[np.ndarray, np.ndarray]]], np.ndarray],
+                       duration: float, rate_hz: float, execute: int, n_obs: int, image_size: int,
+                       camera_hz: float) -> tuple[bool, int]:
+    """The seed's closed loop: from the last `n_obs` camera frames (rgb, depth) the policy predicts the next
+    waypoints at rate_hz (plan(frames) -> (Tp, 3), base frame); the arm executes the first `execute` of them, and
+    the policy re-plans from the frames of the scene as it is then, until the demonstration's duration has passed.
+    The camera runs at camera_hz throughout, as when recording. Returns (success, number of plans)."""
     task = TASKS[spec.task]
     ctrl, scene = make_scene(spec, image_size, image_size)
     camera = RgbdCamera(ctrl.m, image_size, image_size)
     monitor = SuccessMonitor(task, scene)
-    dt = duration / (n_waypoints - 1)
-    ctrl.d.ctrl[len(ARM_JOINTS):] = 0.04
-    plans, k, waypoints = 0, 0, None
-    try:
-        while k < n_waypoints - 1:
+    frames: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=n_obs)
+    next_frame = [0.0]
+
+    def on_step(t: float) -> None:
+        monitor.step()
+        if t + 1e-9 >= next_frame[0]:
             rgb, depth = camera.render(ctrl.d)
-            waypoints = np.asarray(plan(rgb, depth), float)
+            depth[depth > DEPTH_RANGE_M] = np.nan
+            frames.append((rgb, depth))
+            next_frame[0] += 1.0 / camera_hz
+
+    ctrl.d.ctrl[len(ARM_JOINTS):] = 0.04
+    plans, elapsed, dt = 0, 0.0, 1.0 / rate_hz
+    last = ctrl.tcp_pos
+    try:
+        on_step(0.0)
+        while elapsed < duration - 1e-9:
+            stack = [frames[0]] * (n_obs - len(frames)) + list(frames)  # padded at the start, as in training
+            waypoints = np.asarray(plan(stack), float)[:execute]
             plans += 1
-            end = min(k + execute, n_waypoints - 1)
-            seg = waypoints[k:end + 1]
-            track_path(ctrl, waypoint_path(seg, (end - k) * dt), (end - k) * dt, lambda _t: monitor.step())
-            k = end
-        release_and_settle(ctrl, waypoints[-1], on_step=lambda _t: monitor.step())
+            seg = np.vstack([last, waypoints])
+            track_path(ctrl, waypoint_path(seg, len(waypoints) * dt), len(waypoints) * dt, on_step, t_offset=elapsed)
+            elapsed += len(waypoints) * dt
+            last = waypoints[-1]
+        release_and_settle(ctrl, last, on_step=lambda _t: monitor.step())
     finally:
         camera.close()
     return monitor.success(), plans
