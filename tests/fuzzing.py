@@ -317,7 +317,8 @@ def run_case(base: Path, mutation: str, seed: int, recover: bool = False, timeou
         finally:
             signal.alarm(0)
             signal.signal(signal.SIGALRM, old)
-        leftovers = [p.name for p in out.parent.iterdir() if p != out]
+        shards = out.with_name("adl.shards")
+        leftovers = [p.name for p in out.parent.iterdir() if p != out and not (p == shards and out.exists())]
         if leftovers:
             return Outcome(False, "partial files", str(leftovers))
         if out.exists():

@@ -50,6 +50,8 @@ class Layout:
     demos: int = 1  # demonstrations in the bag, each duration_s long, with pause_s of stillness after each
     pause_s: float = 0.0
     markers: bool = False  # std_msgs/String "start"/"stop" on /segment around each demonstration
+    camera_hz: float = 10.0
+    tf_hz: float = 50.0
 
 
 def _moving(t: float) -> list[np.ndarray]:
@@ -89,27 +91,26 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
     events.append((ns(0), 0, "/tf_static", M.TF, lambda: f.tf(ns(0), statics)))
     if lay.task:
         events.append((ns(0), 1, "/task", M.STRING, lambda: f.string(lay.task)))
-    rng = np.random.default_rng(0)
     total = lay.demos * (lay.duration_s + lay.pause_s) - lay.pause_s
     if lay.markers:
         for k in range(lay.demos):
             a = k * (lay.duration_s + lay.pause_s)
             events.append((ns(a), 1, "/segment", M.STRING, lambda: f.string("start")))
             events.append((ns(a + lay.duration_s), 9, "/segment", M.STRING, lambda: f.string("stop")))
-    for k in range(int(round(total * 10)) + 1):  # camera at 10 Hz
-        t = k / 10
+    for k in range(int(round(total * lay.camera_hz)) + 1):
+        t = k / lay.camera_hz
         tn = ns(t)
-        rgb = rng.integers(0, 255, (height, width, 3), dtype=np.uint8)
         events.append((tn, 2, cam["camera_info"], M.CAMERA_INFO,
                        lambda tn=tn: f.camera_info(tn, cam["frame"], K, width, height)))
-        events.append((tn, 3, cam["image"], M.IMAGE, lambda tn=tn, rgb=rgb: f.image(tn, cam["frame"], rgb, "rgb8")))
+        events.append((tn, 3, cam["image"], M.IMAGE,  # made when written: a long bag is never all in memory
+                       lambda tn=tn, k=k: f.image(tn, cam["frame"], _noise(k, height, width), "rgb8")))
         if lay.depth:
             d = np.full((height, width), 1.5, np.float32) + np.linspace(0, 1, width, dtype=np.float32)
             d[:4] = np.nan  # no return
             events.append(_depth_event(f, lay.depth, cam, tn, d))
     ee_t, ee_p = [], []
-    for k in range(int(round(total * 50)) + 1):  # moving tf at 50 Hz
-        t = k / 50
+    for k in range(int(round(total * lay.tf_hz)) + 1):  # the moving tf
+        t = k / lay.tf_hz
         if lay.tf_gap and lay.tf_gap[0] < t < lay.tf_gap[1]:
             continue
         tn = ns(t)
@@ -137,6 +138,10 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
     except BaseException:
         w.abort()
         raise
+
+
+def _noise(k: int, height: int, width: int) -> np.ndarray:
+    return np.random.default_rng(k).integers(0, 255, (height, width, 3), dtype=np.uint8)
 
 
 def _depth_event(f: M.MessageFactory, kind: str, cam: dict, tn: int, d: np.ndarray) -> tuple:

@@ -224,9 +224,11 @@ def split_file(ingested: Path, tmp_path_factory: pytest.TempPathFactory) -> Path
 def test_training_loss_falls_on_a_tiny_set(ingested: Path, split_file: Path, tmp_path: Path, model: str,
                                            factor: float) -> None:
     """Regression fits 3 trajectories almost exactly (measured 0.51 -> 0.03); flow matching keeps the noise in its
-    loss but must still fall (measured 1.41 -> 1.14)."""
+    loss but must still fall (measured 1.41 -> 1.14). Without augmentation: the question is whether the model can
+    fit, not whether 3 shifted images pin the pixel targets down."""
     cfg = ModelConfig(model=model, **TINY)
-    train(ingested, split_file, tmp_path / "m", cfg, epochs=80, batch_size=3, lr=1e-3, warmup_steps=5)
+    train(ingested, split_file, tmp_path / "m", cfg, epochs=80, batch_size=3, lr=1e-3, warmup_steps=5,
+          augment=False)
     hist = load_checkpoint(tmp_path / "m" / "model.pt")["history"]
     first = sum(r["train_loss"] for r in hist[:5]) / 5
     last = sum(r["train_loss"] for r in hist[-10:]) / 10

@@ -90,8 +90,10 @@ def test_sigkill_during_ingest_leaves_old_or_new_file(tmp_path: Path) -> None:
         time.sleep(delay)
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-        with h5py.File(out) as f:  # always a complete file
+        with h5py.File(out) as f:  # always a complete dataset: every episode it names can be read
             n = len(schema.episode_names(f))
+            for name in schema.episode_names(f):
+                assert f[schema.EPISODES][name]["frames/rgb"].shape[0] > 0
         if sha256_of(out) == old:
             outcomes.add("old")
         else:
@@ -102,7 +104,10 @@ def test_sigkill_during_ingest_leaves_old_or_new_file(tmp_path: Path) -> None:
     run_module("ingest", *all_bags, "-o", out, "--size", "64", check=True)
     with h5py.File(out) as f:
         assert len(schema.episode_names(f)) == len(all_bags)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["adl.h5", "bags"]  # killed runs' temp files are gone
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adl.h5", "adl.shards", "bags"]
+    with h5py.File(out) as f:  # killed runs' folders are gone: only the runs the index names are left
+        named = {Path(r["file"]).parts[1] for r in schema.read_catalog(f)}
+    assert {p.name for p in (tmp_path / "adl.shards").iterdir()} == named
 
 
 def test_sigkill_during_training_resumes_to_the_same_result(ingested: Path, tmp_path: Path) -> None:
@@ -164,7 +169,7 @@ def test_hostile_task_names_become_safe_hdf5_names(tmp_path: Path) -> None:
         (name,) = schema.episode_names(f)
         assert name.startswith("etc_passwd_evil-") and "/" not in name and ".." not in name
         assert f[schema.EPISODES][name].attrs["task"] == "../../etc/passwd/evil"
-    assert sorted(os.listdir(tmp_path)) == ["evil.mcap", "x.h5"]
+    assert sorted(os.listdir(tmp_path)) == ["evil.mcap", "x.h5", "x.shards"]
     st_.task = "wipe\x00the nose"
     bag = write_episode_bag(st_, tmp_path / "nul.mcap", "mcap", "raw", "32FC1", 1)
     with pytest.raises(AdlError, match="control characters"):

@@ -55,8 +55,8 @@ class FrameWriter:
 
     def depth(self, t: float, metres: np.ndarray) -> None:
         d = cv2.resize(metres.astype(np.float32), (self.size, self.size), interpolation=cv2.INTER_NEAREST)
-        mm = np.clip(np.round(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0) * 1000.0), 0, DEPTH_MM_MAX)
-        self._append("depth", t, mm.astype(np.uint16))
+        m = np.clip(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0), 0.0, DEPTH_MM_MAX / 1000.0)
+        self._append("depth", t, np.round(m * 1000.0).astype(np.uint16))
 
     def affordance(self, t: float, image: np.ndarray) -> None:
         a = cv2.resize(np.nan_to_num(image.astype(np.float32)), (self.size, self.size), interpolation=cv2.INTER_LINEAR)
