@@ -109,7 +109,7 @@ def main() -> None:
     bags = [bags_dir / f"b{i:04d}.mcap" for i in range(n_total)]
     for i, b in enumerate(bags):
         if not b.exists():
-            write_layout_bag(b, Layout(**{**small.__dict__, "task": f"task {i % 10}", "duration_s": 2.0 + i * 1e-4}))
+            write_layout_bag(b, Layout(**{**small.__dict__, "task": f"task {i % 10} take {i}"}))
     results = {}
     for n in (a.few, a.many):
         out = work / f"n{n}" / "adl.h5"

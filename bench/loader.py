@@ -47,6 +47,7 @@ def main() -> None:
     p.add_argument("--batches", type=int, default=30)
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--workers", type=int, nargs="+", default=[0, 2], help="DataLoader worker processes to measure")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     data = a.data or make_data(Path(tempfile.mkdtemp(prefix="adlpipe-loader-")))
@@ -57,13 +58,17 @@ def main() -> None:
     cfg = preset("small", "fm_cnn", n_obs=2, horizon=16, rate_hz=10.0)
     ds = WindowDataset(data, names, stats, cfg.image_size, Windows(2, 16, 10.0), augment=Augment(size))
     gen = torch.Generator().manual_seed(0)
-    loader = DataLoader(ds, batch_size=a.batch_size, sampler=RandomSampler(ds, generator=gen))
-    it = iter(loader)
-    batches = [next(it)]  # the first opens the files
-    t = time.perf_counter()
-    for _ in range(a.batches):
-        batches.append(next(it))
-    load_s = (time.perf_counter() - t) / a.batches
+    load_s = {}
+    for workers in a.workers:
+        sampler = RandomSampler(ds, replacement=True, num_samples=(a.batches + 4) * a.batch_size, generator=gen)
+        loader = DataLoader(ds, batch_size=a.batch_size, sampler=sampler, num_workers=workers)
+        it = iter(loader)
+        batches = [next(it) for _ in range(4)]  # the first ones start the workers and open the files
+        t = time.perf_counter()
+        for _ in range(a.batches):
+            batches.append(next(it))
+        load_s[workers] = (time.perf_counter() - t) / a.batches
+        del it, loader
 
     policy = Policy(cfg)
     opt = torch.optim.AdamW(policy.parameters(), lr=1e-3)
@@ -76,10 +81,11 @@ def main() -> None:
         opt.step()
         times.append(time.perf_counter() - t)
     step_s = float(np.median(times[5:]))
-    print(f"{len(ds)} windows in {len(names)} episodes at {size} px: loading a batch of {a.batch_size} takes "
-          f"{1000 * load_s:.1f} ms ({a.batch_size / load_s:.0f} windows/s); one training step of the small preset "
-          f"(closed-loop FM-CNN, {a.threads} threads) takes {1000 * step_s:.1f} ms: the loader is "
-          f"{step_s / load_s:.1f}x faster than training")
+    print(f"{len(ds)} windows in {len(names)} episodes at {size} px; one training step of the small preset "
+          f"(closed-loop FM-CNN, batch {a.batch_size}, {a.threads} threads): {1000 * step_s:.1f} ms")
+    for workers, s in load_s.items():
+        print(f"  {workers} loader workers: a batch every {1000 * s:.1f} ms ({a.batch_size / s:.0f} windows/s), "
+              f"{step_s / s:.1f}x faster than a training step")
 
 
 if __name__ == "__main__":

@@ -134,12 +134,12 @@ class Augment:
         target[:, 0] += dx * self.stored_size / s
         target[:, 1] += dy * self.stored_size / s
         b, k, sat = 1 + rng.uniform(-self.jitter, self.jitter, 3)
-        for f in range(0, c, channels_per_frame):  # the same jitter for every frame of the stack
-            rgb = (obs[f:f + 3] + 1) / 2
-            gray = rgb.mean(0, keepdims=True)
-            rgb = gray + sat * (rgb - gray)
-            rgb = (rgb - rgb.mean()) * k + rgb.mean()
-            obs[f:f + 3] = np.clip(rgb * b, 0, 1) * 2 - 1
+        frames = obs.reshape(c // channels_per_frame, channels_per_frame, s, s)  # a view: edits land in obs
+        rgb = (frames[:, :3] + 1) / 2  # the same jitter for every frame of the stack
+        gray = rgb.mean(1, keepdims=True)
+        rgb = gray + sat * (rgb - gray)
+        mean = rgb.mean()
+        frames[:, :3] = np.clip(((rgb - mean) * k + mean) * b, 0, 1) * 2 - 1
         return obs, target
 
 
@@ -196,6 +196,7 @@ class WindowDataset(Dataset):
         self.image_size, self.use_depth, self.augment = image_size, use_depth, augment
         self.per_episode, self.seed, self.epoch = per_episode, seed, 0
         self.files = _EpisodeFiles(str(index), self.names)
+        self._metas: dict[int, dict] = {}
         lengths = []
         for n in self.names:  # windows start at frames up to the end of the demonstration
             g = self.files.group(n)
@@ -219,21 +220,56 @@ class WindowDataset(Dataset):
     def task(self, i: int) -> str:
         return str(self.files.group(self.names[self.window(i)[0]]).attrs["task"])
 
-    def raw(self, e: int, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(observation (To*C, S, S), target (Tp, 5) in pixels and metres) of frame k of episode e."""
-        from .frames import read_frame
-
+    def _meta(self, e: int) -> dict:
+        """An episode's small arrays (stamps, end-effector series, camera, affordance maps and sync indices), read
+        once and kept for the last few episodes: a window then costs one HDF5 read of its frames."""
+        if e in self._metas:
+            return self._metas[e]
         g = self.files.group(self.names[e])
-        frames = []
-        for j in range(k - self.w.n_obs + 1, k + 1):
-            rgb, aff, depth = read_frame(g, max(j, 0), self.use_depth)
-            frames.append(observation_from_arrays(rgb, aff, depth, self.image_size, self.use_depth))
-        t = float(g["frames/t"][k]) + np.arange(1, self.w.horizon + 1) / self.w.rate_hz
-        s = g["series"]
-        ee_t, ee_p = s["ee_t"][()], s["ee_pos"][()]
-        xyz = np.stack([np.interp(t, ee_t, ee_p[:, d]) for d in range(3)], 1)  # clamped: the last pose repeats
-        uv = project(xyz, g["K"][()], g["T_base_camera"][()])
-        return np.concatenate(frames), np.concatenate([uv, xyz], 1).astype(np.float32)
+        fr = g["frames"]
+        m = {"t": fr["t"][()], "ee_t": g["series/ee_t"][()], "ee_pos": g["series/ee_pos"][()], "K": g["K"][()],
+             "T": g["T_base_camera"][()], "aff_index": fr["affordance_index"][()], "aff": {},
+             "depth_index": fr["depth_index"][()] if self.use_depth else None}
+        if len(self._metas) >= 256:
+            self._metas.pop(next(iter(self._metas)))
+        self._metas[e] = m
+        return m
+
+    def _affordance(self, m: dict, g: h5py.Group, k: int) -> np.ndarray:
+        """The affordance channel of frame k at the model's input size, in [-1, 1] (kept per map: most bags
+        publish few)."""
+        a = int(m["aff_index"][k])
+        if a not in m["aff"]:
+            raw = g["frames/affordance"][a] if a >= 0 else np.zeros((self.image_size,) * 2, np.float32)
+            m["aff"][a] = cv2.resize(raw, (self.image_size, self.image_size), interpolation=cv2.INTER_AREA) * 2 - 1
+        return m["aff"][a]
+
+    def raw(self, e: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(observation (To*C, S, S), target (Tp, 5) in pixels and metres) of frame k of episode e: the same
+        channels as observation_from_arrays, for a stack of frames at once."""
+        g = self.files.group(self.names[e])
+        m = self._meta(e)
+        lo = max(k - self.w.n_obs + 1, 0)
+        rgbs = g["frames/rgb"][lo:k + 1]  # one read for the whole stack
+        idx = [max(j, 0) for j in range(k - self.w.n_obs + 1, k + 1)]
+        size = (self.image_size, self.image_size)  # resized frame by frame, exactly as at inference
+        rgb = np.stack([cv2.resize(rgbs[i - lo], size, interpolation=cv2.INTER_AREA) for i in idx])
+        rgb = rgb.transpose(0, 3, 1, 2)
+        chans = [rgb.astype(np.float32) / 127.5 - 1.0,
+                 np.stack([self._affordance(m, g, i) for i in idx])[:, None]]
+        if self.use_depth:
+            chans.append(np.stack([self._depth(m, g, i) for i in idx])[:, None])
+        obs = np.concatenate(chans, axis=1).reshape(-1, self.image_size, self.image_size)
+        t = float(m["t"][k]) + np.arange(1, self.w.horizon + 1) / self.w.rate_hz
+        xyz = np.stack([np.interp(t, m["ee_t"], m["ee_pos"][:, d]) for d in range(3)], 1)  # clamped: last pose
+        return obs, np.concatenate([project(xyz, m["K"], m["T"]), xyz], 1).astype(np.float32)
+
+    def _depth(self, m: dict, g: h5py.Group, k: int) -> np.ndarray:
+        d = int(m["depth_index"][k])
+        if d < 0:
+            return np.full((self.image_size,) * 2, -1.0, np.float32)  # no depth: as a frame of no returns
+        mm = cv2.resize(g["frames/depth"][d], (self.image_size, self.image_size), interpolation=cv2.INTER_NEAREST)
+        return np.clip(mm.astype(np.float32) / 1000.0 / DEPTH_SCALE_M - 1.0, -1, 1)
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         e, k = self.window(i)
