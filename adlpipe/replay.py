@@ -11,6 +11,11 @@ Each test episode's scene is rebuilt from the initial object and manikin poses s
 trajectory (32 waypoints, base frame) is executed open loop over the demonstration's duration by the same arm
 controller and grasp rule that recorded the demonstrations. `demo` (the recorded trajectory itself) is always
 scored too, as the reference. Works on bags recorded by adlpipe.record (their frames name the world's objects).
+
+Closed loop (--closed-loop TA [TA ...], models trained with train --closed-loop): the camera renders at the
+recorded rate; from its last To frames and the end effector's position at each, the policy predicts the next Tp
+waypoints (relative to where the end effector is); the arm executes TA of them and the policy re-plans, until the
+demonstration's duration has passed. Each TA is a row of the table (the seed's Ta sweep).
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from tqdm import tqdm
 from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
 from .dataset import schema
-from .dataset.loader import Normalizer, observation, observation_from_arrays
+from .dataset.loader import Normalizer, normalize_state, observation, observation_from_arrays
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS, load_policy
@@ -56,16 +61,33 @@ def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool]:
     norm = Normalizer(ck["stats"])
     gen = torch.Generator().manual_seed(seed)
 
-    def plan(frames: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-        obs = np.concatenate([observation_from_arrays(rgb, ep.affordance, depth, cfg.image_size, cfg.use_depth)
-                              for rgb, depth in frames])
-        pred = norm.unnormalize(policy.predict(torch.from_numpy(obs)[None], steps, None, gen))
-        return pred[0, :, 2:].numpy()
+    def plan(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
+        image = np.concatenate([observation_from_arrays(rgb, ep.affordance, depth, cfg.image_size, cfg.use_depth)
+                                for rgb, depth, _ in frames])
+        obs = torch.from_numpy(image)[None]
+        state = np.stack([tcp for _, _, tcp in frames])
+        obs = (obs, normalize_state(state, ck["stats"])[None])
+        pred = norm.unnormalize(policy.predict(obs, steps, None, gen))
+        return pred[0, :, 2:].numpy() + state[-1]  # waypoints relative to the end effector now
 
     spec = spec_from_objects(ep.task, ep.object_names, ep.objects)
     ok, _ = replay_closed_loop(spec, plan, ep.duration_s, cfg.rate_hz, execute, cfg.n_obs, ep.rgb.shape[0],
                                camera_hz)
     return label, ep.name, ep.task, ok
+
+
+def every_task_first(data: Path, names: list[str], n: int) -> list[str]:
+    """n episodes taken round-robin over the tasks (in split order within a task): a subset that still covers
+    every task evenly."""
+    with schema.open_dataset(data, names=[]) as f:
+        task = {r["name"]: r["task"] for r in schema.read_catalog(f)}
+    per: dict[str, list[str]] = defaultdict(list)
+    for name in names:
+        per[task.get(name, "")].append(name)
+    out: list[str] = []
+    for k in range(max(len(v) for v in per.values())):
+        out += [v[k] for _t, v in sorted(per.items()) if k < len(v)]
+    return out[:n]
 
 
 def training_summary(models: list[Path]) -> dict[str, dict]:
@@ -123,7 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dp-steps", type=int_range(1, 100), nargs="+", default=[16], help="DDPM steps of diffusion models")
     p.add_argument("--checkpoint", choices=sorted(CHECKPOINTS), default="best",
                    help="best: the epoch with the lowest validation px (default); last: the final epoch")
-    p.add_argument("--max-episodes", type=POSITIVE, help="replay at most this many test episodes")
+    p.add_argument("--max-episodes", type=POSITIVE,
+                   help="replay at most this many test episodes, taken round-robin over the tasks")
     p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1))
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument("--closed-loop", type=POSITIVE, metavar="TA", nargs="+",
@@ -138,7 +161,9 @@ def main(argv: list[str] | None = None) -> int:
     checkpoint = CHECKPOINTS[args.checkpoint]
     check_outputs(args.metrics, args.details, args.table)
     split = load_split(args.split or args.data.with_name("split.json"))
-    names = split["test"][: args.max_episodes] if args.max_episodes else split["test"]
+    names = split["test"]
+    if args.max_episodes and args.max_episodes < len(names):
+        names = every_task_first(args.data, names, args.max_episodes)
     if not names:
         raise AdlError("the test split is empty: nothing to replay")
     with schema.open_dataset(args.data, names) as f:

@@ -12,6 +12,12 @@ Train, test and val figures are logged per epoch to a CSV that `dvc plots` reads
 after every epoch; re-running the same command resumes from it (after a kill, too), and each epoch's randomness
 comes from (seed, epoch), so a resumed run ends where an uninterrupted one does. Checkpoints hold only tensors and
 plain values: they load with torch.load(weights_only=True).
+
+Training augments (a random shift of the image stack with the pixel targets moved alike, colour jitter); --no-augment
+turns it off; validation and test never augment. --closed-loop trains on every frame (adlpipe.dataset.loader
+.WindowDataset): To frames and the end effector's position at each in, the next Tp waypoints at a fixed rate out,
+relative to the end effector now. An epoch draws one random window per training episode, so a closed-loop model
+takes the same optimiser steps as a first-frame one.
 """
 
 from __future__ import annotations
@@ -30,12 +36,20 @@ from tqdm import tqdm
 from .atomic import atomic_path, write_json_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, float_range, int_range
 from .dataset import schema
-from .dataset.loader import Augment, Normalizer, TrajectoryDataset, WindowDataset, Windows, compute_stats
+from .dataset.loader import (
+    Augment,
+    Normalizer,
+    TrajectoryDataset,
+    WindowDataset,
+    Windows,
+    compute_stats,
+    compute_window_stats,
+)
 from .dataset.splits import load_split, make_split
 from .errors import AdlError, run_cli
 from .lock import exclusive
 from .policy.checkpoint import load_checkpoint, save_atomic
-from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, Policy, preset
+from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, Observation, Policy, preset
 
 LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "val_px", "lr", "seconds"]
 CONVERGENCE_TOLERANCE = 0.02  # best val px may fall by at most 2 % over the last fifth of training
@@ -75,13 +89,20 @@ def evaluate_loss(policy: Policy, loader: DataLoader, seed: int) -> float:
     gen = torch.Generator().manual_seed(seed)  # the same noise every epoch: comparable test losses
     total, n = 0.0, 0
     for obs, act in loader:
-        total += float(policy.loss(obs, act, gen)) * len(obs)
-        n += len(obs)
+        total += float(policy.loss(obs, act, gen)) * len(act)
+        n += len(act)
     return total / max(n, 1)
 
 
 @torch.no_grad()
-def validation_px(policy: Policy, obs: torch.Tensor, target_px: torch.Tensor, norm: Normalizer, seed: int) -> float:
+def collate_obs(items: list) -> Observation:
+    """Stack observations: image tensors, or (image, state) pairs of closed-loop windows."""
+    if isinstance(items[0], tuple | list):
+        return tuple(torch.stack(parts) for parts in zip(*items, strict=True))
+    return torch.stack(items)
+
+
+def validation_px(policy: Policy, obs: Observation, target_px: torch.Tensor, norm: Normalizer, seed: int) -> float:
     """Mean per-waypoint pixel error of the default sampler on the validation episodes (same noise every time)."""
     gen = torch.Generator().manual_seed(seed)
     pred = norm.unnormalize(policy.predict(obs, policy.default_steps, None, gen))
@@ -110,7 +131,7 @@ def split_validation(tasks: dict[str, str], fraction: float, seed: int) -> tuple
 def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
           lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = 50, seed: int = 0,
           log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
-          val_fraction: float = 0.1, val_every: int = 5, augment: bool = True) -> dict:
+          val_fraction: float = 0.1, val_every: int = 5, augment: bool = True, workers: int = 0) -> dict:
     """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests).
     A closed-loop config (cfg.rate_hz > 0) trains on windows of every frame; augmentation is for training only."""
     out.mkdir(parents=True, exist_ok=True)
@@ -124,10 +145,10 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     if horizon != cfg.horizon and not cfg.closed_loop:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
     train_names, val_names = split_validation(tasks, val_fraction, seed)
-    stats = compute_stats(str(data), train_names)
     aug = Augment(size) if augment else None
     if cfg.closed_loop:
         w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz)
+        stats = compute_window_stats(data, train_names, w)
 
         def dataset(names: list[str], **kw: object) -> WindowDataset:
             return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, **kw)
@@ -136,6 +157,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         test_ds = dataset(split["test"] or train_names, frames_per_episode=4)
         val_ds = dataset(val_names, frames_per_episode=4) if val_names else None
     else:
+        stats = compute_stats(str(data), train_names)
         train_ds = TrajectoryDataset(str(data), train_names, stats, cfg.image_size, cfg.use_depth, augment=aug,
                                      seed=seed)
         test_ds = TrajectoryDataset(str(data), split["test"] or train_names, stats, cfg.image_size, cfg.use_depth)
@@ -145,7 +167,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     val_obs, val_px_target = None, None
     if val_ds is not None:
         items = [val_ds[i] for i in range(len(val_ds))]
-        val_obs = torch.stack([o for o, _ in items])
+        val_obs = collate_obs([o for o, _ in items])
         val_px_target = norm.unnormalize(torch.stack([a for _, a in items]))[..., :2]
     steps_per_epoch = math.ceil(len(train_ds) / batch_size)
     hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
@@ -184,7 +206,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         t0 = time.time()
         gen = torch.Generator().manual_seed(seed * 100_003 + epoch)  # the epoch's randomness: resumable exactly
         train_ds.epoch = epoch  # the windows drawn and the augmentation, too
-        loader = DataLoader(train_ds, batch_size=batch_size, shuffle=True, generator=gen)
+        loader = DataLoader(train_ds, batch_size=batch_size, shuffle=True, generator=gen, num_workers=workers)
         policy.train()
         total, n = 0.0, 0
         for obs, act in loader:
@@ -198,8 +220,8 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             opt.step()
             sched.step()
             ema.update(policy)
-            total += loss.item() * len(obs)
-            n += len(obs)
+            total += loss.item() * len(act)
+            n += len(act)
         val_px = None
         if val_obs is not None and ((epoch + 1) % val_every == 0 or epoch + 1 == epochs):
             val_px = validation_px(ema.model, val_obs, val_px_target, norm, seed)
@@ -260,6 +282,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--val-fraction", type=float_range(0, 0.9), default=0.1,
                    help="part of the train split held out for validation and checkpoint selection (0: none)")
     p.add_argument("--val-every", type=POSITIVE, default=5, help="measure val px every N epochs (and at the last)")
+    p.add_argument("--workers", type=int_range(0, 64), default=0,
+                   help="DataLoader worker processes that load (and augment) batches beside training (default 0)")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and train from scratch")
     p.add_argument("--no-augment", action="store_true",
                    help="train without random shifts and colour jitter (on by default; never at evaluation)")
@@ -288,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.action_steps % 4:
             raise AdlError(f"--action-steps {args.action_steps}: the U-Net needs a multiple of 4")
         horizon = args.action_steps
-        overrides.update(n_obs=args.obs_frames, rate_hz=args.rate_hz)
+        overrides.update(n_obs=args.obs_frames, rate_hz=args.rate_hz, state_dim=3 * args.obs_frames)
     elif horizon % 4:  # the U-Net halves the sequence twice; the transformers take any length
         raise AdlError(f"{args.data}: {horizon} waypoints per trajectory; the models need a multiple of 4 "
                        "(re-ingest with --waypoints 32)")
@@ -299,7 +323,8 @@ def main(argv: list[str] | None = None) -> int:
     with exclusive(out):
         m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay,
                   args.warmup_steps, args.seed, args.log or out / "log.csv", progress=True,
-                  val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment)
+                  val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment,
+                  workers=args.workers)
     val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"
            f"{'' if m['converged'] else ', NOT CONVERGED'}" if m["val_px_best"] is not None else "")
     print(f"{out}: {cfg.model} trained {m['epochs']} epochs ({m['optimizer_steps']} steps) in {m['seconds']:.0f} s, "

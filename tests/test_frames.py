@@ -13,7 +13,14 @@ from conftest import copy_dataset, one_line_error, run_module
 
 from adlpipe.dataset import schema, shards
 from adlpipe.dataset.frames import nearest_index, read_frame
-from adlpipe.dataset.loader import Augment, WindowDataset, Windows, compute_stats, observation_from_arrays
+from adlpipe.dataset.loader import (
+    Augment,
+    WindowDataset,
+    Windows,
+    compute_stats,
+    compute_window_stats,
+    observation_from_arrays,
+)
 
 
 def _names(path: Path) -> list[str]:
@@ -105,7 +112,7 @@ def test_a_format_1_dataset_says_how_to_re_ingest(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def windows(ingested: Path) -> WindowDataset:
     names = _names(ingested)
-    stats = compute_stats(str(ingested), names)
+    stats = compute_window_stats(ingested, names, Windows(2, 8, 10.0))
     return WindowDataset(ingested, names, stats, 32, Windows(2, 8, 10.0))
 
 
@@ -115,27 +122,33 @@ def test_windows_cover_every_frame_with_padding(windows: WindowDataset, ingested
                   for n in windows.names]
         assert len(windows) == sum(counts)
         g = f["episodes"][windows.names[0]]
-        obs, target = windows.raw(0, 0)
+        obs, state, target = windows.raw(0, 0)
         assert obs.shape == (8, 32, 32) and target.shape == (8, 5)
         np.testing.assert_array_equal(obs[:4], obs[4:])  # before the start: the first frame repeated
-        obs, target = windows.raw(0, 3)
+        obs, state, target = windows.raw(0, 3)
+        np.testing.assert_allclose(state, g["frames/ee_pos"][2:4])  # where the arm is at each obs frame
         frames = g["frames"]
         want = observation_from_arrays(frames["rgb"][3], frames["affordance"][0], None, 32, False)
         np.testing.assert_allclose(obs[4:], want)
         prev = observation_from_arrays(frames["rgb"][2], frames["affordance"][0], None, 32, False)
         np.testing.assert_allclose(obs[:4], prev)
         s = g["series"]
-        t1 = frames["t"][3] + 0.1  # the first target waypoint: one step after the frame
-        np.testing.assert_allclose(target[0, 2:], [np.interp(t1, s["ee_t"][()], s["ee_pos"][:, d]) for d in range(3)],
-                                   atol=1e-5)
+        now = frames["ee_pos"][3]
+        t1 = frames["t"][3] + 0.1  # the first target waypoint: one step after the frame, relative to the arm now
+        want = [np.interp(t1, s["ee_t"][()], s["ee_pos"][:, d]) for d in range(3)] - now
+        np.testing.assert_allclose(target[0, 2:], want, atol=1e-5)
         assert np.linalg.norm(target[1, 2:] - target[0, 2:]) > 0  # the arm moves there
-        _, end = windows.raw(0, counts[0] - 1)
-        np.testing.assert_allclose(end[-1, 2:], s["ee_pos"][-1], atol=1e-5)  # after the end: the last pose
+        _, _, end = windows.raw(0, counts[0] - 1)
+        last = frames["ee_pos"][counts[0] - 1]
+        np.testing.assert_allclose(end[-1, 2:] + last, s["ee_pos"][-1], atol=1e-5)  # after the end: the last pose
         np.testing.assert_allclose(end[-1], end[-2], atol=1e-5)
         from adlpipe.geometry import project
 
-        np.testing.assert_allclose(target[:, :2], project(target[:, 2:], g["K"][()], g["T_base_camera"][()]),
+        K, T = g["K"][()], g["T_base_camera"][()]
+        np.testing.assert_allclose(target[:, :2], project(target[:, 2:] + now, K, T) - project(now[None], K, T),
                                    atol=1e-3)
+        stats = windows.stats  # every relative target of the data lies inside the normalisation range
+        assert np.all(np.asarray(stats["min"]) < target.min(0)) and np.all(target.max(0) < np.asarray(stats["max"]))
 
 
 def test_per_episode_sampling_draws_one_seeded_frame_per_episode(ingested: Path) -> None:

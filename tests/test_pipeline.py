@@ -41,7 +41,7 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> Path:
     params["train"].update(epochs=2, threads=1)
     params["evaluate"].update(steps="1 16", best_of=2, repeats=2)
     params["replay"].update(max_episodes=10, workers=2)
-    params["closed_loop"].update(execute="8 16", max_episodes=3)
+    params["closed_loop"].update(execute="8 16", max_episodes=3, models=["fm_cnn", "dp_cnn", "bc_cnn"])
     (root / "params.yaml").write_text(yaml.safe_dump(params))
     subprocess.run(["git", "init", "-q"], cwd=root, check=True)
     dvc(root, "init", "-q")
@@ -151,7 +151,8 @@ def test_closed_loop_replay_replans_from_new_images(pipeline: Path, tmp_path: Pa
     assert details["training"]["fm_cnn"]["optimizer_steps"] == json.loads(
         (pipeline / "models" / "fm_cnn" / "metrics.json").read_text())["optimizer_steps"]  # the same budget
     ck = __import__("torch").load(pipeline / "models" / "closed_loop" / "fm_cnn" / "best.pt", weights_only=True)
-    assert ck["config"]["n_obs"] == 2 and ck["config"]["horizon"] == 16 and ck["config"]["rate_hz"] == 10
+    cfg = ck["config"]
+    assert cfg["n_obs"] == 2 and cfg["horizon"] == 16 and cfg["rate_hz"] == 10 and cfg["state_dim"] == 6
 
 
 def test_closed_loop_replay_refuses_a_first_frame_model(pipeline: Path, tmp_path: Path) -> None:

@@ -37,6 +37,30 @@ def compute_stats(path: str, names: list[str]) -> dict[str, list[float]]:
     return {"min": (lo - pad).tolist(), "max": (hi + pad).tolist()}
 
 
+def compute_window_stats(index: str | Path, names: list[str], windows: Windows) -> dict[str, list[float]]:
+    """Min/max of closed-loop targets over every frame of `names`: waypoints relative to the current end effector
+    (pixels and metres), and, as state_min/state_max, the absolute positions the state input takes. Reads only the
+    small arrays, an episode at a time."""
+    files = _EpisodeFiles(str(index), list(names))
+    lo, hi = np.full(ACTION_DIM, np.inf), np.full(ACTION_DIM, -np.inf)
+    slo, shi = np.full(3, np.inf), np.full(3, -np.inf)
+    for n in names:
+        g = files.group(n)
+        t = g["frames/t"][()]
+        now = g["frames/ee_pos"][()].astype(float)
+        ee_t, ee_p = g["series/ee_t"][()], g["series/ee_pos"][()]
+        K, T = g["K"][()], g["T_base_camera"][()]
+        future = t[:, None] + np.arange(1, windows.horizon + 1)[None] / windows.rate_hz
+        xyz = np.stack([np.interp(future, ee_t, ee_p[:, d]) for d in range(3)], -1)  # (F, Tp, 3)
+        uv = project(xyz.reshape(-1, 3), K, T).reshape(*xyz.shape[:2], 2) - project(now, K, T)[:, None]
+        rel = np.concatenate([uv, xyz - now[:, None]], -1).reshape(-1, ACTION_DIM)
+        lo, hi = np.minimum(lo, rel.min(0)), np.maximum(hi, rel.max(0))
+        slo, shi = np.minimum(slo, now.min(0)), np.maximum(shi, now.max(0))
+    pad, spad = np.maximum((hi - lo) * 0.05, 1e-3), np.maximum((shi - slo) * 0.05, 1e-3)
+    return {"min": (lo - pad).tolist(), "max": (hi + pad).tolist(), "state_min": (slo - spad).tolist(),
+            "state_max": (shi + spad).tolist()}
+
+
 class Normalizer:
     def __init__(self, stats: dict[str, list[float]]) -> None:
         self.lo = torch.tensor(stats["min"], dtype=torch.float32)
@@ -169,6 +193,9 @@ class _EpisodeFiles:
         return {"files": self.files, "limit": self.limit, "_open": {}, "_pid": -1}
 
 
+MAX_CACHED_WINDOWS = 2000  # ~0.3 GB of 8 x 64 x 64 float32 windows at most
+
+
 @dataclass(frozen=True)
 class Windows:
     """The closed-loop sample: observation frames t-n_obs+1..t, and the end effector's next `horizon` waypoints
@@ -181,8 +208,9 @@ class Windows:
 
 class WindowDataset(Dataset):
     """Every frame of every episode as a training window (Diffusion Policy's sequence sampler): observation frames
-    t-To+1..t stacked as channels (the first frame repeated before the start), target the next Tp waypoints
-    (u, v, x, y, z) at a fixed rate, the last pose repeated after the end, normalised like the trajectories.
+    t-To+1..t stacked as channels (the first frame repeated before the start) with the end effector's position at
+    each, target the next Tp waypoints (u, v, x, y, z) at a fixed rate relative to the current end effector, the
+    last pose repeated after the end, normalised with compute_window_stats.
 
     per_episode: an epoch draws one random frame of each episode (seeded by epoch and episode), so a closed-loop
     model takes as many optimiser steps per epoch as a first-frame one; otherwise every frame is an item, or
@@ -191,12 +219,15 @@ class WindowDataset(Dataset):
     def __init__(self, index: str | Path, names: list[str], stats: dict, image_size: int, windows: Windows,
                  use_depth: bool = False, augment: Augment | None = None, per_episode: bool = False,
                  frames_per_episode: int | None = None, seed: int = 0) -> None:
+        # A fixed set (validation, test loss) without augmentation is kept in memory when small; training windows
+        # and large sets stream.
         self.names, self.w = list(names), windows
-        self.norm = Normalizer(stats)
+        self.stats, self.norm = stats, Normalizer(stats)
         self.image_size, self.use_depth, self.augment = image_size, use_depth, augment
         self.per_episode, self.seed, self.epoch = per_episode, seed, 0
         self.files = _EpisodeFiles(str(index), self.names)
         self._metas: dict[int, dict] = {}
+        self._cached: dict[int, tuple] = {}
         lengths = []
         for n in self.names:  # windows start at frames up to the end of the demonstration
             g = self.files.group(n)
@@ -207,6 +238,7 @@ class WindowDataset(Dataset):
                           for k in np.unique(np.linspace(0, n - 1, frames_per_episode).round().astype(int))]
         else:
             self.items = [(e, k) for e, n in enumerate(self.lengths) for k in range(n)]
+        self.cache = bool(frames_per_episode) and augment is None and len(self.items) <= MAX_CACHED_WINDOWS
 
     def __len__(self) -> int:
         return len(self.names) if self.per_episode else len(self.items)
@@ -227,8 +259,9 @@ class WindowDataset(Dataset):
             return self._metas[e]
         g = self.files.group(self.names[e])
         fr = g["frames"]
-        m = {"t": fr["t"][()], "ee_t": g["series/ee_t"][()], "ee_pos": g["series/ee_pos"][()], "K": g["K"][()],
-             "T": g["T_base_camera"][()], "aff_index": fr["affordance_index"][()], "aff": {},
+        m = {"t": fr["t"][()], "frame_ee": fr["ee_pos"][()].astype(np.float32), "ee_t": g["series/ee_t"][()],
+             "ee_pos": g["series/ee_pos"][()], "K": g["K"][()], "T": g["T_base_camera"][()],
+             "aff_index": fr["affordance_index"][()], "aff": {},
              "depth_index": fr["depth_index"][()] if self.use_depth else None}
         if len(self._metas) >= 256:
             self._metas.pop(next(iter(self._metas)))
@@ -244,9 +277,10 @@ class WindowDataset(Dataset):
             m["aff"][a] = cv2.resize(raw, (self.image_size, self.image_size), interpolation=cv2.INTER_AREA) * 2 - 1
         return m["aff"][a]
 
-    def raw(self, e: int, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(observation (To*C, S, S), target (Tp, 5) in pixels and metres) of frame k of episode e: the same
-        channels as observation_from_arrays, for a stack of frames at once."""
+    def raw(self, e: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(observation (To*C, S, S), end-effector positions at those frames (To, 3), target (Tp, 5)) of frame k of
+        episode e: the same channels as observation_from_arrays, for a stack at once. The target is relative to
+        where the end effector is at frame k: pixels from its projection, metres from its position."""
         g = self.files.group(self.names[e])
         m = self._meta(e)
         lo = max(k - self.w.n_obs + 1, 0)
@@ -262,7 +296,10 @@ class WindowDataset(Dataset):
         obs = np.concatenate(chans, axis=1).reshape(-1, self.image_size, self.image_size)
         t = float(m["t"][k]) + np.arange(1, self.w.horizon + 1) / self.w.rate_hz
         xyz = np.stack([np.interp(t, m["ee_t"], m["ee_pos"][:, d]) for d in range(3)], 1)  # clamped: last pose
-        return obs, np.concatenate([project(xyz, m["K"], m["T"]), xyz], 1).astype(np.float32)
+        state = m["frame_ee"][idx]
+        now = m["frame_ee"][k].astype(float)
+        uv = project(xyz, m["K"], m["T"]) - project(now[None], m["K"], m["T"])
+        return obs, state, np.concatenate([uv, xyz - now], 1).astype(np.float32)
 
     def _depth(self, m: dict, g: h5py.Group, k: int) -> np.ndarray:
         d = int(m["depth_index"][k])
@@ -271,10 +308,26 @@ class WindowDataset(Dataset):
         mm = cv2.resize(g["frames/depth"][d], (self.image_size, self.image_size), interpolation=cv2.INTER_NEAREST)
         return np.clip(mm.astype(np.float32) / 1000.0 / DEPTH_SCALE_M - 1.0, -1, 1)
 
-    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def __getitem__(self, i: int) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """((image channels, normalised end-effector state (3 * To)), normalised target (Tp, 5))."""
+        if i in self._cached:
+            return self._cached[i]
         e, k = self.window(i)
-        obs, target = self.raw(e, k)
+        obs, state, target = self.raw(e, k)
         if self.augment is not None:
             rng = np.random.default_rng([self.seed, self.epoch, i, 1])
-            obs, target = self.augment(obs, target, rng, 5 if self.use_depth else 4)
-        return torch.from_numpy(obs.astype(np.float32)), self.norm.normalize(torch.from_numpy(target))
+            obs, _ = self.augment(obs, target, rng, 5 if self.use_depth else 4)  # relative targets do not move
+        item = ((torch.from_numpy(obs.astype(np.float32)), self.normalize_state(state)),
+                self.norm.normalize(torch.from_numpy(target)))
+        if self.cache:
+            self._cached[i] = item
+        return item
+
+    def normalize_state(self, state: np.ndarray) -> torch.Tensor:
+        return normalize_state(state, self.stats)
+
+
+def normalize_state(state: np.ndarray, stats: dict) -> torch.Tensor:
+    """End-effector positions (To, 3), metres -> [-1, 1] with the state statistics, flattened."""
+    lo, hi = np.asarray(stats["state_min"]), np.asarray(stats["state_max"])
+    return torch.from_numpy((2 * (state - lo) / (hi - lo) - 1).astype(np.float32).reshape(-1))

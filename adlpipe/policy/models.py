@@ -51,6 +51,7 @@ class ModelConfig:
     n_layers: int = 2
     n_heads: int = 4
     n_obs: int = 1  # observation frames stacked as channels (closed loop: 2)
+    state_dim: int = 0  # closed loop: the end effector's position at each observation frame (3 * n_obs)
     rate_hz: float = 0.0  # 0: first frame -> whole trajectory (the seed's ADL setting); > 0: next `horizon`
     #                       waypoints at this rate from the current frame (closed loop, adlpipe.dataset.loader.Windows)
 
@@ -95,6 +96,10 @@ def make_objective(kind: str) -> FlowMatching | DDPM | MSERegression:
     return {"fm": FlowMatching, "ddpm": DDPM, "mse": MSERegression}[kind]()
 
 
+# An observation: image channels (B, C, S, S), or (image channels, normalised state (B, state_dim)) in closed loop.
+Observation = torch.Tensor | tuple[torch.Tensor, torch.Tensor]
+
+
 class UnetRegressor(nn.Module):
     """The conditional U-Net as a regressor: fed a constant input (zeros) at time 0, it maps the observation feature
     to the trajectory through exactly the layers that FM-CNN and DP-CNN use."""
@@ -119,15 +124,15 @@ class Policy(nn.Module):
         self.kind, net = MODELS[cfg.model]
         self.objective = make_objective(self.kind)
         self.encoder = ResNet18GN(cfg.in_channels, cfg.obs_dim, cfg.encoder_width)
+        cond = cfg.obs_dim + cfg.state_dim
         if net in ("unet", "unet_regressor"):
-            self.net = ConditionalUnet1D(ACTION_DIM, cfg.obs_dim, cfg.down_dims, cfg.kernel, cfg.groups)
+            self.net = ConditionalUnet1D(ACTION_DIM, cond, cfg.down_dims, cfg.kernel, cfg.groups)
             if net == "unet_regressor":
                 self.net = UnetRegressor(self.net, cfg.horizon)
         elif net == "transformer":
-            self.net = TransformerDenoiser(ACTION_DIM, cfg.obs_dim, cfg.horizon, cfg.d_model, cfg.n_layers, cfg.n_heads)
+            self.net = TransformerDenoiser(ACTION_DIM, cond, cfg.horizon, cfg.d_model, cfg.n_layers, cfg.n_heads)
         else:
-            self.net = TransformerRegressor(ACTION_DIM, cfg.obs_dim, cfg.horizon, cfg.d_model, cfg.n_layers,
-                                            cfg.n_heads)
+            self.net = TransformerRegressor(ACTION_DIM, cond, cfg.horizon, cfg.d_model, cfg.n_layers, cfg.n_heads)
 
     @property
     def default_method(self) -> str:
@@ -142,12 +147,19 @@ class Policy(nn.Module):
         """fm, ddpm or mse: which samplers apply."""
         return self.kind.split("_")[0]
 
-    def loss(self, obs: torch.Tensor, action: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
-        return self.objective.loss(self.net, action, self.encoder(obs), gen)
+    def condition(self, obs: Observation) -> torch.Tensor:
+        """The image feature, with the normalised end-effector state beside it when the model takes one."""
+        if isinstance(obs, tuple | list):
+            image, state = obs
+            return torch.cat([self.encoder(image), state], dim=1)
+        return self.encoder(obs)
+
+    def loss(self, obs: Observation, action: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
+        return self.objective.loss(self.net, action, self.condition(obs), gen)
 
     @torch.no_grad()
-    def predict(self, obs: torch.Tensor, steps: int = 1, method: str | None = None,
+    def predict(self, obs: Observation, steps: int = 1, method: str | None = None,
                 gen: torch.Generator | None = None) -> torch.Tensor:
-        cond = self.encoder(obs)
-        shape = (obs.shape[0], self.cfg.horizon, ACTION_DIM)
+        cond = self.condition(obs)
+        shape = (cond.shape[0], self.cfg.horizon, ACTION_DIM)
         return self.objective.sample(self.net, cond, shape, steps, method or self.default_method, gen)

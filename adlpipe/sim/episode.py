@@ -262,18 +262,20 @@ def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -
     return monitor.success(), np.array(path)
 
 
-def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[tuple[np.ndarray, np.ndarray]]], np.ndarray],
+def replay_closed_loop(spec: SceneSpec,
+                       plan: Callable[[list[tuple[np.ndarray, np.ndarray, np.ndarray]]], np.ndarray],
                        duration: float, rate_hz: float, execute: int, n_obs: int, image_size: int,
                        camera_hz: float) -> tuple[bool, int]:
-    """The seed's closed loop: from the last `n_obs` camera frames (rgb, depth) the policy predicts the next
-    waypoints at rate_hz (plan(frames) -> (Tp, 3), base frame); the arm executes the first `execute` of them, and
+    """The seed's closed loop: from the last `n_obs` camera frames (rgb, depth, tcp position when rendered) the
+    policy predicts the next waypoints at rate_hz (plan(frames) -> (Tp, 3), base frame); the arm executes the first
+    `execute` of them, and
     the policy re-plans from the frames of the scene as it is then, until the demonstration's duration has passed.
     The camera runs at camera_hz throughout, as when recording. Returns (success, number of plans)."""
     task = TASKS[spec.task]
     ctrl, scene = make_scene(spec, image_size, image_size)
     camera = RgbdCamera(ctrl.m, image_size, image_size)
     monitor = SuccessMonitor(task, scene)
-    frames: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=n_obs)
+    frames: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=n_obs)
     next_frame = [0.0]
 
     def on_step(t: float) -> None:
@@ -281,7 +283,7 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[tuple[np.ndarray, n
         if t + 1e-9 >= next_frame[0]:
             rgb, depth = camera.render(ctrl.d)
             depth[depth > DEPTH_RANGE_M] = np.nan
-            frames.append((rgb, depth))
+            frames.append((rgb, depth, ctrl.tcp_pos))
             next_frame[0] += 1.0 / camera_hz
 
     ctrl.d.ctrl[len(ARM_JOINTS):] = 0.04
