@@ -154,7 +154,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, **kw)
 
         train_ds = dataset(train_names, augment=aug, per_episode=True)
-        test_ds = dataset(split["test"] or train_names, frames_per_episode=4)
+        test_ds = dataset(split["test"] or train_names, frames_per_episode=2)
         val_ds = dataset(val_names, frames_per_episode=4) if val_names else None
     else:
         stats = compute_stats(str(data), train_names)

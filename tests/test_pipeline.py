@@ -17,7 +17,7 @@ import pytest
 import yaml
 from conftest import REPO, one_line_error, run_module
 
-MODELS = ["fm_cnn", "fm_cnn_velocity", "fm_transformer", "dp_cnn", "bc_cnn", "bc_transformer"]
+MODELS = ["fm_cnn", "fm_transformer", "dp_cnn", "bc_cnn", "bc_transformer"]
 
 
 def dvc(cwd: Path, *args: str) -> subprocess.CompletedProcess:
