@@ -94,9 +94,11 @@ def test_a_run_that_never_reached_the_index_is_removed(mcap_bags: list[Path], tm
     (orphan / "000000.h5").write_bytes(b"half")
     dead = shards.shards_dir(out) / ".run-20000101-000001-999999999.tmp"
     dead.mkdir()
+    stale_index = out.with_name(f".{out.name}.tmp999999999")  # an index being replaced when the kill came
+    stale_index.write_bytes(b"half")
     assert len(_names(out)) == 1
     run_module("ingest", mcap_bags[1], "-o", out, "--size", "64", check=True)
-    assert not orphan.exists() and not dead.exists()
+    assert not orphan.exists() and not dead.exists() and not stale_index.exists()
     assert len(_names(out)) == 2
 
 
@@ -132,6 +134,10 @@ def test_windows_cover_every_frame_with_padding(windows: WindowDataset, ingested
         np.testing.assert_allclose(obs[4:], want)
         prev = observation_from_arrays(frames["rgb"][2], frames["affordance"][0], None, 32, False)
         np.testing.assert_allclose(obs[:4], prev)
+        deep = WindowDataset(ingested, windows.names[:1], windows.stats, 32, windows.w, use_depth=True)
+        with_depth = deep.raw(0, 3)[0]  # 5 channels a frame; the same depth channel as at inference
+        _, aff, depth = read_frame(g, 3)
+        np.testing.assert_allclose(with_depth[5:], observation_from_arrays(frames["rgb"][3], aff, depth, 32, True))
         s = g["series"]
         now = frames["ee_pos"][3]
         t1 = frames["t"][3] + 0.1  # the first target waypoint: one step after the frame, relative to the arm now

@@ -60,7 +60,12 @@ def write_index(index: Path, rows: list[dict[str, str]], n_waypoints: int, image
 
 
 def remove_unreferenced(index: Path) -> None:
-    """Run folders no index names (an ingest killed before its commit) and hidden folders of dead runs."""
+    """What killed ingests left: temp files of the index (.adl.h5.tmp<pid>), hidden folders of runs whose process
+    is gone, and run folders no index names (killed between the folder's rename and the index's)."""
+    for tmp in index.parent.glob(f".{index.name}.tmp*"):
+        pid = tmp.name.rsplit(".tmp", 1)[1]
+        if pid.isdigit() and not _alive(int(pid)):
+            tmp.unlink(missing_ok=True)
     root = shards_dir(index)
     if not root.is_dir():
         return
@@ -79,6 +84,7 @@ def remove_unreferenced(index: Path) -> None:
 
 
 def _alive(pid: int) -> bool:
+    """Whether a process exists (another user's counts as alive)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
