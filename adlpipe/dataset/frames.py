@@ -35,18 +35,16 @@ class FrameWriter:
     def __init__(self, group: h5py.Group, size: int) -> None:
         self.g = group.require_group(FRAMES)
         self.size = size
-        self.n = {"rgb": 0, "depth": 0, "affordance": 0}
-        self.t: dict[str, list[float]] = {"rgb": [], "depth": [], "affordance": []}
+        self.t: dict[str, list[float]] = {"rgb": [], "depth": [], "affordance": []}  # stamps of what is written
 
     def _append(self, key: str, t: float, arr: np.ndarray) -> None:
         if key not in self.g:
             self.g.create_dataset(key, shape=(0, *arr.shape), maxshape=(None, *arr.shape), dtype=arr.dtype,
                                   chunks=(1, *arr.shape), **CODEC)
         d = self.g[key]
-        i = self.n[key]
+        i = len(self.t[key])
         d.resize(i + 1, axis=0)
         d[i] = arr
-        self.n[key] = i + 1
         self.t[key].append(t)
 
     def rgb(self, t: float, image: np.ndarray) -> None:
@@ -124,8 +122,9 @@ def read_frame(g: h5py.Group, i: int, with_depth: bool = True) -> tuple[np.ndarr
     a = int(f["affordance_index"][i]) if "affordance_index" in f else -1
     aff = f["affordance"][a] if a >= 0 else np.zeros(rgb.shape[:2], np.float32)
     d = int(f["depth_index"][i]) if with_depth and "depth_index" in f else -1
-    depth = None
-    if d >= 0:
-        mm = f["depth"][d].astype(np.float32)
-        depth = np.where(mm > 0, mm / 1000.0, np.nan).astype(np.float32)
-    return rgb, aff, depth
+    return rgb, aff, metres_from_mm(f["depth"][d]) if d >= 0 else None
+
+
+def metres_from_mm(mm: np.ndarray) -> np.ndarray:
+    """A stored depth image (uint16 mm, 0 = no return) in metres, NaN = no return: what FrameWriter.depth took."""
+    return np.where(mm > 0, mm.astype(np.float32) / 1000.0, np.nan).astype(np.float32)

@@ -19,6 +19,7 @@ from torch.utils.data import Dataset
 
 from ..geometry import project
 from . import schema
+from .frames import metres_from_mm
 
 DEPTH_SCALE_M = 2.0  # depth / 2 m - 1 keeps the table-top range inside [-1, 1]
 ACTION_DIM = 5  # u, v, x, y, z
@@ -86,10 +87,16 @@ def observation_from_arrays(rgb: np.ndarray, affordance: np.ndarray, depth: np.n
     aff = cv2.resize(affordance, (image_size, image_size), interpolation=cv2.INTER_AREA)
     chans = [rgb.transpose(2, 0, 1).astype(np.float32) / 127.5 - 1.0, aff[None] * 2.0 - 1.0]
     if use_depth:
-        d = depth if depth is not None else np.full(rgb.shape[:2], np.nan, np.float32)
-        d = cv2.resize(np.nan_to_num(d, nan=0.0), (image_size, image_size), interpolation=cv2.INTER_NEAREST)
-        chans.append(np.clip(d / DEPTH_SCALE_M - 1.0, -1, 1)[None])
+        chans.append(depth_channel(depth, image_size)[None])
     return np.concatenate(chans).astype(np.float32)
+
+
+def depth_channel(metres: np.ndarray | None, image_size: int) -> np.ndarray:
+    """Depth in metres (NaN = no return; None: no depth image) as the network's channel in [-1, 1]."""
+    if metres is None:
+        return np.full((image_size, image_size), -1.0, np.float32)  # as a frame of no returns
+    d = cv2.resize(np.nan_to_num(metres, nan=0.0), (image_size, image_size), interpolation=cv2.INTER_NEAREST)
+    return np.clip(d / DEPTH_SCALE_M - 1.0, -1, 1).astype(np.float32)
 
 
 class TrajectoryDataset(Dataset):
@@ -249,9 +256,6 @@ class WindowDataset(Dataset):
         rng = np.random.default_rng([self.seed, self.epoch, i])
         return i, int(rng.integers(self.lengths[i]))
 
-    def task(self, i: int) -> str:
-        return str(self.files.group(self.names[self.window(i)[0]]).attrs["task"])
-
     def _meta(self, e: int) -> dict:
         """An episode's small arrays (stamps, end-effector series, camera, affordance maps and sync indices), read
         once and kept for the last few episodes: a window then costs one HDF5 read of its frames."""
@@ -303,10 +307,7 @@ class WindowDataset(Dataset):
 
     def _depth(self, m: dict, g: h5py.Group, k: int) -> np.ndarray:
         d = int(m["depth_index"][k])
-        if d < 0:
-            return np.full((self.image_size,) * 2, -1.0, np.float32)  # no depth: as a frame of no returns
-        mm = cv2.resize(g["frames/depth"][d], (self.image_size, self.image_size), interpolation=cv2.INTER_NEAREST)
-        return np.clip(mm.astype(np.float32) / 1000.0 / DEPTH_SCALE_M - 1.0, -1, 1)
+        return depth_channel(metres_from_mm(g["frames/depth"][d]) if d >= 0 else None, self.image_size)
 
     def __getitem__(self, i: int) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
         """((image channels, normalised end-effector state (3 * To)), normalised target (Tp, 5))."""
