@@ -16,6 +16,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -53,43 +54,42 @@ def options() -> dict[str, dict]:
     return opts
 
 
-def bench_chunked(path: Path, arr: np.ndarray, opts: dict, reads: int) -> tuple[float, float, float]:
+def bench(path: Path, arr: np.ndarray, reads: int, dataset: dict, encode: Callable = lambda a: a,
+          decode: Callable = lambda b: b) -> tuple[float, float, float]:
+    """(bytes per frame, write frames/s, random-read frames/s): frames appended one at a time as ingest streams
+    them, then `reads` random frames read back and decoded in one file handle."""
     t = time.perf_counter()
     with h5py.File(path, "w") as f:
-        d = f.create_dataset("x", shape=(0, *arr.shape[1:]), maxshape=(None, *arr.shape[1:]), dtype=arr.dtype,
-                             chunks=(1, *arr.shape[1:]), **opts)
-        for i, a in enumerate(arr):  # appended one at a time, as ingest streams them
+        d = f.create_dataset("x", **dataset)
+        for i, a in enumerate(arr):
             d.resize(i + 1, axis=0)
-            d[i] = a
+            d[i] = encode(a)
     write_fps = len(arr) / (time.perf_counter() - t)
     idx = np.random.default_rng(0).integers(0, len(arr), reads)
     with h5py.File(path, "r") as f:
         d = f["x"]
         t = time.perf_counter()
         for i in idx:
-            d[int(i)]
+            decode(d[int(i)])
         read_fps = reads / (time.perf_counter() - t)
     return os.path.getsize(path) / len(arr), write_fps, read_fps
+
+
+def bench_chunked(path: Path, arr: np.ndarray, opts: dict, reads: int) -> tuple[float, float, float]:
+    shape = arr.shape[1:]
+    return bench(path, arr, reads, dict(shape=(0, *shape), maxshape=(None, *shape), dtype=arr.dtype,
+                                        chunks=(1, *shape), **opts))
 
 
 def bench_encoded(path: Path, arr: np.ndarray, ext: str, reads: int) -> tuple[float, float, float]:
     params = [cv2.IMWRITE_JPEG_QUALITY, 90] if ext == ".jpg" else [cv2.IMWRITE_PNG_COMPRESSION, 3]
-    t = time.perf_counter()
-    with h5py.File(path, "w") as f:
-        d = f.create_dataset("x", shape=(0,), maxshape=(None,), dtype=h5py.vlen_dtype(np.uint8), chunks=(64,))
-        for i, a in enumerate(arr):
-            img = a[..., ::-1] if a.ndim == 3 else a  # cv2 encodes BGR
-            d.resize(i + 1, axis=0)
-            d[i] = np.frombuffer(cv2.imencode(ext, img, params)[1].tobytes(), np.uint8)
-    write_fps = len(arr) / (time.perf_counter() - t)
-    idx = np.random.default_rng(0).integers(0, len(arr), reads)
-    with h5py.File(path, "r") as f:
-        d = f["x"]
-        t = time.perf_counter()
-        for i in idx:
-            cv2.imdecode(d[int(i)], cv2.IMREAD_UNCHANGED)
-        read_fps = reads / (time.perf_counter() - t)
-    return os.path.getsize(path) / len(arr), write_fps, read_fps
+
+    def encode(a: np.ndarray) -> np.ndarray:
+        img = a[..., ::-1] if a.ndim == 3 else a  # cv2 encodes BGR
+        return np.frombuffer(cv2.imencode(ext, img, params)[1].tobytes(), np.uint8)
+
+    return bench(path, arr, reads, dict(shape=(0,), maxshape=(None,), dtype=h5py.vlen_dtype(np.uint8), chunks=(64,)),
+                 encode, lambda b: cv2.imdecode(b, cv2.IMREAD_UNCHANGED))
 
 
 def main() -> None:
