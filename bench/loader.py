@@ -39,7 +39,7 @@ def main() -> None:
     import torch
     from torch.utils.data import DataLoader, RandomSampler
 
-    from adlpipe.dataset.loader import Augment, WindowDataset, Windows, compute_stats
+    from adlpipe.dataset.loader import Augment, WindowDataset, Windows, compute_window_stats
     from adlpipe.policy.models import Policy, preset
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -54,9 +54,10 @@ def main() -> None:
     with h5py.File(data) as f:
         names = sorted(f["episodes"])
         size = int(f.attrs["image_size"])
-    stats = compute_stats(str(data), names)
-    cfg = preset("small", "fm_cnn", n_obs=2, horizon=16, rate_hz=10.0)
-    ds = WindowDataset(data, names, stats, cfg.image_size, Windows(2, 16, 10.0), augment=Augment(size))
+    windows = Windows(2, 16, 10.0)
+    stats = compute_window_stats(data, names, windows)
+    cfg = preset("small", "fm_cnn", n_obs=2, horizon=16, rate_hz=10.0, state_dim=6)  # as train --closed-loop
+    ds = WindowDataset(data, names, stats, cfg.image_size, windows, augment=Augment(size))
     gen = torch.Generator().manual_seed(0)
     load_s = {}
     for workers in a.workers:
