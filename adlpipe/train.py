@@ -22,7 +22,7 @@ takes the same optimiser steps as a first-frame one.
 
 from __future__ import annotations
 
-import copy
+import contextlib
 import csv
 import math
 import sys
@@ -30,7 +30,8 @@ import time
 from pathlib import Path
 
 import torch
-from torch.utils.data import DataLoader
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from .atomic import atomic_path, write_json_atomic
@@ -45,56 +46,42 @@ from .dataset.loader import (
     compute_stats,
     compute_window_stats,
 )
+from .dataset.sampling import EpochSampler, TrainingSamples
 from .dataset.splits import load_split, make_split
 from .errors import AdlError, run_cli
 from .lock import exclusive
 from .policy.checkpoint import load_checkpoint, save_atomic
 from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, Observation, Policy, preset
+from .policy.objectives import Noise
+from .policy.optim import EMA, cosine_with_warmup
+from .runtime import (
+    Ranks,
+    add_device_args,
+    all_sum,
+    autocast,
+    barrier,
+    generator,
+    process_group,
+    resolve_device,
+    to_device,
+)
 
 LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "val_px", "lr", "seconds"]
 CONVERGENCE_TOLERANCE = 0.02  # best val px may fall by at most 2 % over the last fifth of training
 
 
-def cosine_with_warmup(opt: torch.optim.Optimizer, warmup: int, total: int) -> torch.optim.lr_scheduler.LambdaLR:
-    def f(step: int) -> float:
-        if step < warmup:
-            return (step + 1) / warmup
-        progress = (step - warmup) / max(1, total - warmup)
-        return 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
-
-    return torch.optim.lr_scheduler.LambdaLR(opt, f)
-
-
-class EMA:
-    """Exponential moving average of the weights with Diffusion Policy's warm-up: decay = 1 - (1 + step/1)^-0.75,
-    capped at max_decay, so early averages are not dominated by the random initialisation."""
-
-    def __init__(self, model: torch.nn.Module, max_decay: float = 0.999) -> None:
-        self.model = copy.deepcopy(model).eval().requires_grad_(False)
-        self.max_decay = max_decay
-        self.step = 0
-
-    @torch.no_grad()
-    def update(self, model: torch.nn.Module) -> None:
-        self.step += 1
-        decay = min(self.max_decay, max(0.0, 1 - (1 + self.step) ** -0.75))
-        for e, p in zip(self.model.parameters(), model.parameters(), strict=True):
-            e.mul_(decay).add_(p.detach(), alpha=1 - decay)
-        for e, b in zip(self.model.buffers(), model.buffers(), strict=True):
-            e.copy_(b)
-
-
 @torch.no_grad()
-def evaluate_loss(policy: Policy, loader: DataLoader, seed: int) -> float:
-    gen = torch.Generator().manual_seed(seed)  # the same noise every epoch: comparable test losses
+def evaluate_loss(policy: Policy, loader: DataLoader, device: torch.device, precision: str) -> float:
+    """Mean loss over the loader (its samples carry fixed noise: comparable test losses from epoch to epoch)."""
     total, n = 0.0, 0
-    for obs, act in loader:
-        total += float(policy.loss(obs, act, gen)) * len(act)
+    for obs, act, eps, u in loader:
+        obs, act, eps, u = to_device((obs, act, eps, u), device)
+        with autocast(device, precision):
+            total += float(policy.loss(obs, act, Noise(eps, u))) * len(act)
         n += len(act)
     return total / max(n, 1)
 
 
-@torch.no_grad()
 def collate_obs(items: list) -> Observation:
     """Stack observations: image tensors, or (image, state) pairs of closed-loop windows."""
     if isinstance(items[0], tuple | list):
@@ -102,11 +89,13 @@ def collate_obs(items: list) -> Observation:
     return torch.stack(items)
 
 
-def validation_px(policy: Policy, obs: Observation, target_px: torch.Tensor, norm: Normalizer, seed: int) -> float:
+def validation_px(policy: Policy, obs: Observation, target_px: torch.Tensor, norm: Normalizer, seed: int,
+                  precision: str = "fp32") -> float:
     """Mean per-waypoint pixel error of the default sampler on the validation episodes (same noise every time)."""
-    gen = torch.Generator().manual_seed(seed)
-    pred = norm.unnormalize(policy.predict(obs, policy.default_steps, None, gen))
-    return float((pred[..., :2] - target_px).norm(dim=-1).mean())
+    device = target_px.device
+    with autocast(device, precision):
+        pred = policy.predict(obs, policy.default_steps, None, generator(device, seed))
+    return float((norm.unnormalize(pred)[..., :2] - target_px).norm(dim=-1).mean())
 
 
 def converged(history: list[dict], tolerance: float = CONVERGENCE_TOLERANCE) -> bool:
@@ -128,54 +117,74 @@ def split_validation(tasks: dict[str, str], fraction: float, seed: int) -> tuple
     return parts["train"], parts["test"]
 
 
-def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
-          lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = 50, seed: int = 0,
-          log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
-          val_fraction: float = 0.1, val_every: int = 5, augment: bool = True, workers: int = 0) -> dict:
-    """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests).
-    A closed-loop config (cfg.rate_hz > 0) trains on windows of every frame; augmentation is for training only."""
-    out.mkdir(parents=True, exist_ok=True)
-    split = load_split(split_path)
-    if not split["train"]:
-        raise AdlError(f"{split_path}: the train split is empty")
-    with schema.open_dataset(data, split["train"] + split["test"]) as f:
-        horizon = int(f.attrs["n_waypoints"])
-        size = int(f.attrs["image_size"])
-        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
-    if horizon != cfg.horizon and not cfg.closed_loop:
-        raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
-    train_names, val_names = split_validation(tasks, val_fraction, seed)
-    aug = Augment(size) if augment else None
+def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], val_names: list[str],
+             augment: bool, seed: int) -> tuple[dict, Dataset, Dataset, Dataset | None]:
+    """(stats, train, test, val) datasets of the model's kind: windows of every frame (closed loop) or first frames.
+    Augmentation is for training only."""
+    with schema.open_dataset(data, names=[]) as f:
+        aug = Augment(int(f.attrs["image_size"])) if augment else None
     if cfg.closed_loop:
         w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz)
         stats = compute_window_stats(data, train_names, w)
 
-        def dataset(names: list[str], **kw: object) -> WindowDataset:
+        def windows(names: list[str], **kw: object) -> WindowDataset:
             return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, **kw)
 
-        train_ds = dataset(train_names, augment=aug, per_episode=True)
-        test_ds = dataset(split["test"] or train_names, frames_per_episode=2)
-        val_ds = dataset(val_names, frames_per_episode=4) if val_names else None
-    else:
-        stats = compute_stats(str(data), train_names)
-        train_ds = TrajectoryDataset(str(data), train_names, stats, cfg.image_size, cfg.use_depth, augment=aug,
-                                     seed=seed)
-        test_ds = TrajectoryDataset(str(data), split["test"] or train_names, stats, cfg.image_size, cfg.use_depth)
-        val_ds = (TrajectoryDataset(str(data), val_names, stats, cfg.image_size, cfg.use_depth, cache=False)
-                  if val_names else None)
+        return (stats, windows(train_names, augment=aug, per_episode=True),
+                windows(split["test"] or train_names, frames_per_episode=2),
+                windows(val_names, frames_per_episode=4) if val_names else None)
+    stats = compute_stats(str(data), train_names)
+
+    def firsts(names: list[str], **kw: object) -> TrajectoryDataset:
+        return TrajectoryDataset(str(data), names, stats, cfg.image_size, cfg.use_depth, **kw)
+
+    return (stats, firsts(train_names, augment=aug, seed=seed), firsts(split["test"] or train_names),
+            firsts(val_names, cache=False) if val_names else None)
+
+
+def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
+          lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = 50, seed: int = 0,
+          log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
+          val_fraction: float = 0.1, val_every: int = 5, augment: bool = True, workers: int = 0,
+          device: torch.device | None = None, precision: str = "fp32", ranks: Ranks | None = None) -> dict:
+    """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests).
+    batch_size is the global batch: under torchrun (ranks) each process takes batch_size / world of it; rank 0
+    validates, logs and writes the checkpoints."""
+    device, ranks = device or torch.device("cpu"), ranks or Ranks()
+    out.mkdir(parents=True, exist_ok=True)
+    split = load_split(split_path)
+    if not split["train"]:
+        raise AdlError(f"{split_path}: the train split is empty")
+    if batch_size % ranks.world:
+        raise AdlError(f"--batch-size {batch_size}: the global batch must split evenly over {ranks.world} processes")
+    with schema.open_dataset(data, split["train"] + split["test"]) as f:
+        horizon = int(f.attrs["n_waypoints"])
+        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
+    if horizon != cfg.horizon and not cfg.closed_loop:
+        raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
+    train_names, val_names = split_validation(tasks, val_fraction, seed)
+    stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, augment, seed)
     norm = Normalizer(stats)
     val_obs, val_px_target = None, None
-    if val_ds is not None:
+    if val_ds is not None and ranks.main:
         items = [val_ds[i] for i in range(len(val_ds))]
-        val_obs = collate_obs([o for o, _ in items])
-        val_px_target = norm.unnormalize(torch.stack([a for _, a in items]))[..., :2]
-    steps_per_epoch = math.ceil(len(train_ds) / batch_size)
+        val_obs = to_device(collate_obs([o for o, _ in items]), device)
+        val_px_target = norm.unnormalize(torch.stack([a for _, a in items]))[..., :2].to(device)
+    sampler = EpochSampler(len(train_ds), ranks.world, ranks.rank, seed)
+    # One loader for the run: its workers (each with its own HDF5 handles) live as long as it does.
+    loader = DataLoader(TrainingSamples(train_ds, seed), batch_size=batch_size // ranks.world, sampler=sampler,
+                        num_workers=workers, persistent_workers=workers > 0, pin_memory=device.type == "cuda")
+    test_loader = DataLoader(TrainingSamples(test_ds, seed), batch_size=batch_size,
+                             sampler=EpochSampler(len(test_ds), shuffle=False), num_workers=0)
+    steps_per_epoch = len(loader)
     hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
                "warmup_steps": warmup_steps, "seed": seed, "data": str(data), "split": sorted(split["train"]),
                "val_fraction": val_fraction, "val_every": val_every, "augment": augment}
 
     torch.manual_seed(seed)
-    policy = Policy(cfg)
+    policy = Policy(cfg).to(device)
+    model = DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None) \
+        if ranks.world > 1 else policy  # averages the gradients over the processes in backward
     opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=weight_decay)
     sched = cosine_with_warmup(opt, warmup_steps, epochs * steps_per_epoch)
     ema = EMA(policy)
@@ -199,46 +208,51 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         return {"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats, "history": history,
                 "hparams": hparams, "epoch": epoch}
 
-    test_loader = DataLoader(test_ds, batch_size=batch_size, shuffle=False)
     bar = tqdm(range(start_epoch, epochs), initial=start_epoch, total=epochs, desc=f"train {cfg.model}",
-               unit="epoch", file=sys.stderr, disable=None if progress else True)
+               unit="epoch", file=sys.stderr, disable=None if progress and ranks.main else True)
     for epoch in bar:
         t0 = time.time()
-        gen = torch.Generator().manual_seed(seed * 100_003 + epoch)  # the epoch's randomness: resumable exactly
-        train_ds.epoch = epoch  # the windows drawn and the augmentation, too
-        loader = DataLoader(train_ds, batch_size=batch_size, shuffle=True, generator=gen, num_workers=workers)
-        policy.train()
+        sampler.set_epoch(epoch)  # the epoch's permutation, windows, augmentation and noise: resumable exactly
+        model.train()
         total, n = 0.0, 0
-        for obs, act in loader:
-            loss = policy.loss(obs, act, gen)
-            if not torch.isfinite(loss):  # stop before the weights or last.pt take the NaN
-                raise AdlError(f"{cfg.model}: training diverged (loss {float(loss.detach())} in epoch {epoch + 1}); "
-                               f"the last good checkpoint is kept in {out / 'last.pt'}; try a lower --lr")
+        for batch in loader:
+            obs, act, eps, u = to_device(batch, device)
+            with autocast(device, precision):
+                loss = model(obs, act, Noise(eps, u))
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+            grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+            if not torch.isfinite(grad_norm):  # the same on every process (synchronised gradients): all stop here,
+                # before the weights or last.pt take the NaN
+                raise AdlError(f"{cfg.model}: training diverged (loss {float(loss.detach())}, gradient norm "
+                               f"{float(grad_norm)} in epoch {epoch + 1}); the last good checkpoint is kept in "
+                               f"{out / 'last.pt'}; try a lower --lr")
             opt.step()
             sched.step()
             ema.update(policy)
             total += loss.item() * len(act)
             n += len(act)
-        val_px = None
-        if val_obs is not None and ((epoch + 1) % val_every == 0 or epoch + 1 == epochs):
-            val_px = validation_px(ema.model, val_obs, val_px_target, norm, seed)
-        row = {"epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "train_loss": total / n,
-               "test_loss": evaluate_loss(ema.model, test_loader, seed), "val_px": val_px,
-               "lr": sched.get_last_lr()[0], "seconds": time.time() - t0}
-        history.append(row)
-        bar.set_postfix(train=f"{row['train_loss']:.4f}", test=f"{row['test_loss']:.4f}")
-        if val_px is not None and val_px < best_px:  # written before last.pt: a resumed run never lacks it
-            best_px = val_px
-            save_atomic(inference_checkpoint(epoch + 1), out / "best.pt")
-        save_atomic({"model": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
-                     "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1,
-                     "history": history, "config": cfg.to_dict(), "hparams": hparams, "stats": stats}, last)
+        total, n = all_sum([total, n], device, ranks)
+        if ranks.main:
+            val_px = None
+            if val_obs is not None and ((epoch + 1) % val_every == 0 or epoch + 1 == epochs):
+                val_px = validation_px(ema.model, val_obs, val_px_target, norm, seed, precision)
+            row = {"epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "train_loss": total / n,
+                   "test_loss": evaluate_loss(ema.model, test_loader, device, precision), "val_px": val_px,
+                   "lr": sched.get_last_lr()[0], "seconds": time.time() - t0}
+            history.append(row)
+            bar.set_postfix(train=f"{row['train_loss']:.4f}", test=f"{row['test_loss']:.4f}")
+            if val_px is not None and val_px < best_px:  # written before last.pt: a resumed run never lacks it
+                best_px = val_px
+                save_atomic(inference_checkpoint(epoch + 1), out / "best.pt")
+            save_atomic({"model": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
+                         "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1,
+                         "history": history, "config": cfg.to_dict(), "hparams": hparams, "stats": stats}, last)
+        barrier(ranks)  # the others wait while rank 0 validates and writes
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
             return {"interrupted_at": epoch + 1}
-
+    if not ranks.main:
+        return {}
     save_atomic(inference_checkpoint(epochs), out / "model.pt")
     if not (out / "best.pt").exists():  # no validation part: the last weights are the only choice
         save_atomic(inference_checkpoint(epochs), out / "best.pt")
@@ -254,7 +268,8 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
              "train_loss": history[-1]["train_loss"], "test_loss": history[-1]["test_loss"],
              "val_px_last": vals[-1]["val_px"] if vals else None, "val_px_best": best["val_px"] if best else None,
              "best_epoch": best["epoch"] if best else epochs, "converged": converged(history),
-             "val_history": [[r["epoch"], r["val_px"]] for r in vals],
+             "val_history": [[r["epoch"], r["val_px"]] for r in vals], "processes": ranks.world,
+             "device": device.type, "precision": precision,
              "seconds": sum(r["seconds"] for r in history)}
     write_json_atomic(out / "metrics.json", final)
     return final
@@ -283,7 +298,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="part of the train split held out for validation and checkpoint selection (0: none)")
     p.add_argument("--val-every", type=POSITIVE, default=5, help="measure val px every N epochs (and at the last)")
     p.add_argument("--workers", type=int_range(0, 64), default=0,
-                   help="DataLoader worker processes that load (and augment) batches beside training (default 0)")
+                   help="DataLoader worker processes (per training process) that load and augment batches beside "
+                   "training; they persist for the whole run (default 0: the training process loads)")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and train from scratch")
     p.add_argument("--no-augment", action="store_true",
                    help="train without random shifts and colour jitter (on by default; never at evaluation)")
@@ -295,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="closed loop: Tp, a multiple of 4 (default 16)")
     p.add_argument("--rate-hz", type=float_range(0.1, 1000), default=10.0,
                    help="closed loop: waypoint rate (default 10 Hz)")
+    add_device_args(p)
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -302,10 +319,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.image_size:
         overrides["image_size"] = args.image_size
     out = args.out or Path("models") / args.model
-    if args.restart:
-        with exclusive(out):
-            for name in ("last.pt", "best.pt"):
-                (out / name).unlink(missing_ok=True)
     with schema.open_dataset(args.data, names=[]) as f:  # train() checks the split's episodes
         horizon = int(f.attrs["n_waypoints"])
     if args.closed_loop:
@@ -320,11 +333,19 @@ def main(argv: list[str] | None = None) -> int:
     cfg = preset(args.config, args.model, **overrides)
     split = args.split or args.data.with_name("split.json")
     lr = args.lr if args.lr is not None else PRESET_LR[args.config]
-    with exclusive(out):
-        m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay,
-                  args.warmup_steps, args.seed, args.log or out / "log.csv", progress=True,
-                  val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment,
-                  workers=args.workers)
+    device = resolve_device(args.device)
+    with process_group(device) as ranks:  # under torchrun: one process per GPU (or CPU share), rank 0 writes
+        with exclusive(out) if ranks.main else contextlib.nullcontext():
+            if args.restart and ranks.main:
+                for name in ("last.pt", "best.pt"):
+                    (out / name).unlink(missing_ok=True)
+            barrier(ranks)  # no process reads a checkpoint that --restart is about to remove
+            m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay,
+                      args.warmup_steps, args.seed, args.log or out / "log.csv", progress=True,
+                      val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment,
+                      workers=args.workers, device=device, precision=args.precision, ranks=ranks)
+    if not ranks.main:
+        return 0
     val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"
            f"{'' if m['converged'] else ', NOT CONVERGED'}" if m["val_px_best"] is not None else "")
     print(f"{out}: {cfg.model} trained {m['epochs']} epochs ({m['optimizer_steps']} steps) in {m['seconds']:.0f} s, "

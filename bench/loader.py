@@ -76,7 +76,7 @@ def main() -> None:
     times = []
     for obs, act in batches[:10] + batches[:10]:
         t = time.perf_counter()
-        loss = policy.loss(obs, act, gen)
+        loss = policy.loss(obs, act, gen=gen)
         opt.zero_grad()
         loss.backward()
         opt.step()

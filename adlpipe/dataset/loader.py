@@ -127,6 +127,11 @@ class TrajectoryDataset(Dataset):
         return str(self._handle()[schema.EPISODES][self.names[i]].attrs["task"])
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.item(i, self.epoch)
+
+    def item(self, i: int, epoch: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Item i as epoch `epoch` augments it (the epoch comes with the index: persistent workers keep their own
+        copy of the dataset, whose epoch attribute the main process cannot move)."""
         if i in self._items:
             obs, target = self._items[i]
         else:
@@ -135,7 +140,7 @@ class TrajectoryDataset(Dataset):
             if self.cache:
                 self._items[i] = (obs, target)
         if self.augment is not None:
-            rng = np.random.default_rng([self.seed, self.epoch, i, 1])
+            rng = np.random.default_rng([self.seed, epoch, i, 1])
             obs, target = self.augment(obs, target, rng, 5 if self.use_depth else 4)
         return torch.from_numpy(obs), self.norm.normalize(torch.from_numpy(target))
 
@@ -250,10 +255,10 @@ class WindowDataset(Dataset):
     def __len__(self) -> int:
         return len(self.names) if self.per_episode else len(self.items)
 
-    def window(self, i: int) -> tuple[int, int]:
+    def window(self, i: int, epoch: int | None = None) -> tuple[int, int]:
         if not self.per_episode:
             return self.items[i]
-        rng = np.random.default_rng([self.seed, self.epoch, i])
+        rng = np.random.default_rng([self.seed, self.epoch if epoch is None else epoch, i])
         return i, int(rng.integers(self.lengths[i]))
 
     def _meta(self, e: int) -> dict:
@@ -311,12 +316,16 @@ class WindowDataset(Dataset):
 
     def __getitem__(self, i: int) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
         """((image channels, normalised end-effector state (3 * To)), normalised target (Tp, 5))."""
+        return self.item(i, self.epoch)
+
+    def item(self, i: int, epoch: int) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """Item i as epoch `epoch` draws (per_episode) and augments it."""
         if i in self._cached:
             return self._cached[i]
-        e, k = self.window(i)
+        e, k = self.window(i, epoch)
         obs, state, target = self.raw(e, k)
         if self.augment is not None:
-            rng = np.random.default_rng([self.seed, self.epoch, i, 1])
+            rng = np.random.default_rng([self.seed, epoch, i, 1])
             obs, _ = self.augment(obs, target, rng, 5 if self.use_depth else 4)  # relative targets do not move
         item = ((torch.from_numpy(obs.astype(np.float32)), self.normalize_state(state)),
                 self.norm.normalize(torch.from_numpy(target)))

@@ -21,7 +21,7 @@ from ..dataset.loader import ACTION_DIM
 from .nets.resnet import ResNet18GN
 from .nets.transformer import TransformerDenoiser, TransformerRegressor
 from .nets.unet1d import ConditionalUnet1D
-from .objectives import DDPM, FlowMatching, MSERegression
+from .objectives import DDPM, FlowMatching, MSERegression, Noise, draw_noise
 
 MODELS = {  # name -> (objective, network)
     "fm_cnn": ("fm", "unet"),
@@ -154,12 +154,26 @@ class Policy(nn.Module):
             return torch.cat([self.encoder(image), state], dim=1)
         return self.encoder(obs)
 
-    def loss(self, obs: Observation, action: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
-        return self.objective.loss(self.net, action, self.condition(obs), gen)
+    def loss(self, obs: Observation, action: torch.Tensor, noise: Noise | None = None,
+             gen: torch.Generator | None = None) -> torch.Tensor:
+        """The objective's loss; noise: the batch's per-sample training noise (drawn from gen when None)."""
+        noise = noise or draw_noise(tuple(action.shape), gen, action.device)
+        return self.objective.loss(self.net, action, self.condition(obs), noise)
+
+    def forward(self, obs: Observation, action: torch.Tensor, noise: Noise) -> torch.Tensor:
+        """The training loss: forward is what DistributedDataParallel wraps to synchronise the gradients."""
+        return self.loss(obs, action, noise)
+
+    def compile_for_inference(self) -> Policy:
+        """torch.compile the encoder and the network (the samplers' Python loop stays eager)."""
+        self.encoder = torch.compile(self.encoder)
+        self.net = torch.compile(self.net)
+        return self
 
     @torch.no_grad()
     def predict(self, obs: Observation, steps: int = 1, method: str | None = None,
                 gen: torch.Generator | None = None) -> torch.Tensor:
         cond = self.condition(obs)
         shape = (cond.shape[0], self.cfg.horizon, ACTION_DIM)
-        return self.objective.sample(self.net, cond, shape, steps, method or self.default_method, gen)
+        out = self.objective.sample(self.net, cond, shape, steps, method or self.default_method, gen)
+        return out.float()  # under bf16 autocast the last network output is bfloat16

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -25,6 +26,23 @@ Denoiser = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]  #
 
 
 T_EPS = 0.05  # the smallest 1 - t that x-prediction divides by
+
+
+@dataclass(frozen=True)
+class Noise:
+    """A batch's training randomness: eps (B, N, D) standard normal (FM's x0, DDPM's noise) and u (B, 2) uniform in
+    [0, 1) (the flow time or diffusion step; a second one for objectives that sample two times). Drawn per sample
+    from (seed, epoch, index) by adlpipe.dataset.sampling, the same on 1 or N processes."""
+
+    eps: torch.Tensor
+    u: torch.Tensor
+
+
+def draw_noise(shape: tuple[int, ...], gen: torch.Generator | None = None,
+               device: torch.device | str | None = None) -> Noise:
+    """A batch's noise from one generator (tests, benches)."""
+    return Noise(torch.randn(shape, generator=gen, device=device),
+                 torch.rand(shape[0], 2, generator=gen, device=device))
 
 
 def interpolate(x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -51,10 +69,8 @@ class FlowMatching:
             raise ValueError(f"unknown flow-matching prediction {prediction!r}; use one of {self.predictions}")
         self.prediction = prediction
 
-    def loss(self, net: Denoiser, x1: torch.Tensor, cond: torch.Tensor,
-             gen: torch.Generator | None = None) -> torch.Tensor:
-        x0 = torch.randn(x1.shape, generator=gen, device=x1.device)
-        t = torch.rand(x1.shape[0], generator=gen, device=x1.device)
+    def loss(self, net: Denoiser, x1: torch.Tensor, cond: torch.Tensor, noise: Noise) -> torch.Tensor:
+        x0, t = noise.eps, noise.u[:, 0]
         out = net(interpolate(x0, x1, t), t * self.TIME_SCALE, cond)
         return F.mse_loss(out, x1 if self.prediction == "x1" else x1 - x0)
 
@@ -110,13 +126,11 @@ class DDPM:
         self.abar = torch.cumprod(1 - self.betas, 0)
         self.clip = clip_sample
 
-    def loss(self, net: Denoiser, x1: torch.Tensor, cond: torch.Tensor,
-             gen: torch.Generator | None = None) -> torch.Tensor:
-        noise = torch.randn(x1.shape, generator=gen, device=x1.device)
-        k = torch.randint(0, self.n, (x1.shape[0],), generator=gen, device=x1.device)
+    def loss(self, net: Denoiser, x1: torch.Tensor, cond: torch.Tensor, noise: Noise) -> torch.Tensor:
+        k = (noise.u[:, 0] * self.n).long().clamp(max=self.n - 1)  # a uniform diffusion step in 0..n-1
         a = self.abar.to(x1.device, torch.float32)[k][:, None, None]
-        xk = a.sqrt() * x1 + (1 - a).sqrt() * noise
-        return F.mse_loss(net(xk, k.float(), cond), noise)
+        xk = a.sqrt() * x1 + (1 - a).sqrt() * noise.eps
+        return F.mse_loss(net(xk, k.float(), cond), noise.eps)
 
     def timesteps(self, steps: int, spacing: str | None = None) -> list[int]:
         """'leading' (diffusers' default): steps=16 -> [90, 84, ..., 0], steps=1 -> [0];
@@ -167,8 +181,7 @@ class MSERegression:
 
     methods = ("direct",)
 
-    def loss(self, net: Callable, x1: torch.Tensor, cond: torch.Tensor,
-             gen: torch.Generator | None = None) -> torch.Tensor:
+    def loss(self, net: Callable, x1: torch.Tensor, cond: torch.Tensor, noise: Noise | None = None) -> torch.Tensor:
         return F.mse_loss(net(cond), x1)
 
     @torch.no_grad()

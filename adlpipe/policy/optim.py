@@ -1,0 +1,38 @@
+"""What the training loop updates the weights with, apart from the optimiser itself: the learning-rate schedule
+and the EMA of the weights that validation, evaluation and inference use."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+
+
+def cosine_with_warmup(opt: torch.optim.Optimizer, warmup: int, total: int) -> torch.optim.lr_scheduler.LambdaLR:
+    def f(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        progress = (step - warmup) / max(1, total - warmup)
+        return 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+
+    return torch.optim.lr_scheduler.LambdaLR(opt, f)
+
+
+class EMA:
+    """Exponential moving average of the weights with Diffusion Policy's warm-up: decay = 1 - (1 + step/1)^-0.75,
+    capped at max_decay, so early averages are not dominated by the random initialisation."""
+
+    def __init__(self, model: torch.nn.Module, max_decay: float = 0.999) -> None:
+        self.model = copy.deepcopy(model).eval().requires_grad_(False)
+        self.max_decay = max_decay
+        self.step = 0
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module) -> None:
+        self.step += 1
+        decay = min(self.max_decay, max(0.0, 1 - (1 + self.step) ** -0.75))
+        for e, p in zip(self.model.parameters(), model.parameters(), strict=True):
+            e.mul_(decay).add_(p.detach(), alpha=1 - decay)
+        for e, b in zip(self.model.buffers(), model.buffers(), strict=True):
+            e.copy_(b)
