@@ -16,9 +16,7 @@ from __future__ import annotations
 import csv
 import io
 import json
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -30,7 +28,9 @@ from .dataset.loader import Normalizer, TrajectoryDataset
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS, load_policy
+from .policy.inference import latency_ms, predict
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
+from .runtime import Placement, add_device_args
 
 STEPS = [1, 2, 4, 8, 16]
 DEFAULTS = {name: f"{DEFAULT_METHOD[kind]}/{DEFAULT_STEPS[kind]}" for name, (kind, _net) in MODELS.items()}
@@ -50,25 +50,15 @@ def waypoint_errors(pred: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor,
     return px, cm
 
 
-def latency_ms(policy, obs: torch.Tensor, steps: int, method: str, repeats: int) -> float:  # noqa: ANN001
-    gen = torch.Generator().manual_seed(0)
-    for _ in range(2):  # warm-up
-        policy.predict(obs, steps, method, gen)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        policy.predict(obs, steps, method, gen)
-        times.append((time.perf_counter() - t0) * 1000.0)
-    return statistics.median(times)
-
-
 def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: list[int],
                    methods_by_kind: dict[str, list[str]], k: int, repeats: int, seed: int, image_px: int,
-                   checkpoint: str = "model.pt", timings: dict | None = None) -> dict:
+                   checkpoint: str = "model.pt", timings: dict | None = None,
+                   placement: Placement | None = None) -> dict:
     """methods_by_kind: the samplers to evaluate for each objective family ("fm", "ddpm"); others use their
     default. image_px: the stored image size the pixel errors are in. timings: latencies already measured for the
     same network (another checkpoint), reused."""
-    policy, ck = load_policy(model_dir / checkpoint)
+    placement = placement or Placement()
+    policy, ck = load_policy(model_dir / checkpoint, placement)
     cfg = policy.cfg
     ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth)
     norm = Normalizer(ck["stats"])
@@ -84,13 +74,13 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
     rows = {}
     for method in methods:
         for steps in steps_list:
-            gen = torch.Generator().manual_seed(seed)
-            pred = norm.unnormalize(policy.predict(obs, steps, method, gen))
+            gen = placement.generator(seed)
+            pred = norm.unnormalize(predict(policy, obs, steps, method, gen, placement))
             px, cm = waypoint_errors(pred, gt)
             # best-of-K: the closest of K samples to the demonstration (for BC all K are the same prediction)
             best_px, best_cm = px.clone(), cm.clone()
             for _ in range(k - 1 if policy.family != "mse" else 0):
-                p2, c2 = waypoint_errors(norm.unnormalize(policy.predict(obs, steps, method, gen)), gt)
+                p2, c2 = waypoint_errors(norm.unnormalize(predict(policy, obs, steps, method, gen, placement)), gt)
                 best_px, best_cm = torch.minimum(best_px, p2), torch.minimum(best_cm, c2)
             per_task = {t: {"px": float(px[idx].mean()), "cm": float(cm[idx].mean()), "n": len(idx)}
                         for t, idx in by_task.items()}
@@ -104,7 +94,7 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
                 "px_multimodal": float(px[mm].mean()) if mm else None,
                 "cm_multimodal": float(cm[mm].mean()) if mm else None,
                 f"best_of_{k}_px": float(best_px.mean()), f"best_of_{k}_cm": float(best_cm.mean()),
-                "ms": ms if ms is not None else latency_ms(policy, obs[:1], steps, method, repeats),
+                "ms": ms if ms is not None else latency_ms(policy, obs[:1], steps, method, repeats, placement),
                 "per_task": per_task,
             }
     return rows
@@ -192,9 +182,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="every figure, per checkpoint, sampler, step count and task")
     p.add_argument("--plots", type=Path, default=Path("metrics/steps.csv"))
     p.add_argument("--table", type=Path, default=Path("reports/table1.md"))
+    add_device_args(p, compile_option=True)
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    placement = Placement.from_args(args)
     check_outputs(args.metrics, args.details, args.plots, args.table)
     split = load_split(args.split or args.data.with_name("split.json"))
     if not split["test"]:
@@ -210,13 +202,13 @@ def main(argv: list[str] | None = None) -> int:
                 raise AdlError(f"{d}: no {name}; train it first (python -m adlpipe.train)")
         training[d.name] = _training_metrics(d)
         last = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
-                              args.seed, image_px)
+                              args.seed, image_px, placement=placement)
         t = training[d.name]
         if t and t.get("best_epoch") == t.get("epochs"):
             best = last  # the best validation epoch was the last: best.pt holds model.pt's weights
         else:
             best = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
-                                  args.seed, image_px, CHECKPOINTS["best"], timings=last)
+                                  args.seed, image_px, CHECKPOINTS["best"], timings=last, placement=placement)
         results[d.name] = {"best": best, "last": last}
         top = min(best.values(), key=lambda r: r["px"])
         print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
@@ -224,7 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     title = "# Trajectory error and inference time on the test split\n\n"
     write_all_atomic({
         args.details: json_text({"n_test": len(split["test"]), "best_of": args.best_of, "training": training,
-                                 "models": results}),
+                                 "device": str(placement.device), "precision": placement.precision,
+                                 "compiled": placement.compile, "models": results}),
         args.metrics: json_text(headline(results, training, len(split["test"]))),
         args.plots: steps_csv(results, args.steps),
         args.table: title + table1(results, args.best_of, training)})

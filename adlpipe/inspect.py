@@ -26,6 +26,8 @@ from .dataset.loader import Normalizer, observation
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS, load_policy
+from .policy.inference import predict
+from .runtime import Placement, add_device_args
 
 GT_COLOR = [40, 200, 40]
 PRED_COLOR = [230, 60, 40]
@@ -87,9 +89,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoint", choices=sorted(CHECKPOINTS), default="best",
                    help="best: the lowest validation px (best.pt, default); last: model.pt")
     p.add_argument("-o", "--output", type=Path, default=Path("preds.rrd"))
+    add_device_args(p, compile_option=True)
     args = p.parse_args(argv)
     check_outputs(args.output)
-    policy, ck = load_policy(args.model / CHECKPOINTS[args.checkpoint])
+    placement = Placement.from_args(args)
+    policy, ck = load_policy(args.model / CHECKPOINTS[args.checkpoint], placement)
     norm = Normalizer(ck["stats"])
     with schema.open_dataset(args.data) as f:
         all_names = schema.episode_names(f)
@@ -107,9 +111,10 @@ def main(argv: list[str] | None = None) -> int:
         eps = [schema.read_episode(f, n) for n in names]
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
                                                         policy.cfg.use_depth)) for n in names])
-    gen = torch.Generator().manual_seed(args.seed)
+    gen = placement.generator(args.seed)
     k = 1 if policy.family == "mse" else args.samples
-    samples = torch.stack([norm.unnormalize(policy.predict(obs, args.steps, None, gen)) for _ in range(k)], dim=1)
+    samples = torch.stack([norm.unnormalize(predict(policy, obs, args.steps, None, gen, placement))
+                           for _ in range(k)], dim=1)
     write_recording(args.output, eps, list(samples.numpy()), policy.cfg.model)
     print(f"{args.output}: {len(eps)} episode(s), {k} sample(s) each from {args.model}")
     return 0

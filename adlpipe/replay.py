@@ -21,6 +21,7 @@ demonstration's duration has passed. Each TA is a row of the table (the seed's T
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import sys
 from collections import defaultdict
@@ -39,6 +40,8 @@ from .dataset.loader import Normalizer, normalize_state, observation, observatio
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS, load_policy
+from .policy.inference import predict
+from .runtime import Placement, add_device_args
 
 
 def _replay_one(job: tuple) -> tuple[str, str, str, bool]:
@@ -54,12 +57,12 @@ def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool]:
     """Closed-loop replay of one episode with one model (runs in a pool process: loads the model itself)."""
     from .sim.episode import replay_closed_loop, spec_from_objects
 
-    label, model_dir, checkpoint, ep, camera_hz, steps, execute, seed = job
+    label, model_dir, checkpoint, ep, camera_hz, steps, execute, seed, placement = job
     torch.set_num_threads(1)
-    policy, ck = load_policy(Path(model_dir) / checkpoint)
+    policy, ck = load_policy(Path(model_dir) / checkpoint, placement)
     cfg = policy.cfg
     norm = Normalizer(ck["stats"])
-    gen = torch.Generator().manual_seed(seed)
+    gen = placement.generator(seed)
 
     def plan(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
         image = np.concatenate([observation_from_arrays(rgb, ep.affordance, depth, cfg.image_size, cfg.use_depth)
@@ -67,7 +70,7 @@ def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool]:
         obs = torch.from_numpy(image)[None]
         state = np.stack([tcp for _, _, tcp in frames])
         obs = (obs, normalize_state(state, ck["stats"])[None])
-        pred = norm.unnormalize(policy.predict(obs, steps, None, gen))
+        pred = norm.unnormalize(predict(policy, obs, steps, None, gen, placement))
         return pred[0, :, 2:].numpy() + state[-1]  # waypoints relative to the end effector now
 
     spec = spec_from_objects(ep.task, ep.object_names, ep.objects)
@@ -117,17 +120,16 @@ def label_of(model_dir: Path, method: str, family: str, steps: int) -> str:
 
 
 def predict_all(model_dir: Path, checkpoint: str, data: Path, names: list[str], fm_steps: list[int],
-                dp_steps: list[int], seed: int) -> dict[str, np.ndarray]:
+                dp_steps: list[int], seed: int, placement: Placement) -> dict[str, np.ndarray]:
     """label -> predicted traj3d (E, N, 3) of a model for the named episodes, for each of its step counts."""
-    policy, ck = load_policy(model_dir / checkpoint)
+    policy, ck = load_policy(model_dir / checkpoint, placement)
     norm = Normalizer(ck["stats"])
     with h5py.File(data, "r") as f:
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
                                                         policy.cfg.use_depth)) for n in names])
     out = {}
     for steps in steps_for(policy.family, fm_steps, dp_steps):
-        gen = torch.Generator().manual_seed(seed)
-        pred = norm.unnormalize(policy.predict(obs, steps, None, gen))
+        pred = norm.unnormalize(predict(policy, obs, steps, None, placement.generator(seed), placement))
         out[label_of(model_dir, policy.default_method, policy.family, steps)] = pred[..., 2:].numpy()
     return out
 
@@ -155,7 +157,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--metrics", type=Path, default=Path("metrics/replay.json"), help="overall success per policy")
     p.add_argument("--details", type=Path, default=Path("metrics/replay_details.json"), help="success per task")
     p.add_argument("--table", type=Path, default=Path("reports/table2.md"))
+    add_device_args(p, compile_option=True)
     args = p.parse_args(argv)
+    placement = Placement.from_args(args)
     if min(args.fm_steps + args.dp_steps) < 1:
         raise AdlError("--fm-steps and --dp-steps must be >= 1")
     checkpoint = CHECKPOINTS[args.checkpoint]
@@ -191,18 +195,21 @@ def main(argv: list[str] | None = None) -> int:
                     if ta > policy.cfg.horizon:
                         raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
                     label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}"
-                    jobs += [(label, str(d), checkpoint, ep, rate, steps, ta, args.seed)
+                    jobs += [(label, str(d), checkpoint, ep, rate, steps, ta, args.seed, placement)
                              for ep, rate in zip(eps, rates, strict=True)]
     else:
         worker = _replay_one
         trajs = {"demo": np.stack([ep.traj3d for ep in eps])}
         for d in args.models:
-            trajs.update(predict_all(d, checkpoint, args.data, names, args.fm_steps, args.dp_steps, args.seed))
+            trajs.update(predict_all(d, checkpoint, args.data, names, args.fm_steps, args.dp_steps, args.seed,
+                                     placement))
         jobs = [(label, ep.name, ep.task, ep.object_names, ep.objects, traj[i], ep.duration_s)
                 for label, traj in trajs.items() for i, ep in enumerate(eps)]
     wins: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     per_episode: dict[str, dict[str, bool]] = defaultdict(dict)
-    with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
+    # CUDA cannot be used in a forked child of a process that has used it: closed-loop workers on a GPU are spawned
+    context = multiprocessing.get_context("spawn") if placement.device.type == "cuda" else None
+    with ProcessPoolExecutor(max_workers=max(1, args.workers), mp_context=context) as pool:
         for label, name, task, ok in tqdm(pool.map(worker, jobs, chunksize=4), total=len(jobs), desc="replay",
                                           unit="ep", file=sys.stderr, disable=None):
             wins[label][task].append(ok)

@@ -55,6 +55,25 @@ def resolve_device(name: str) -> torch.device:
     return torch.device("cuda", index)
 
 
+@dataclass(frozen=True)
+class Placement:
+    """Where and how inference runs: the device, the precision, and whether the networks are compiled."""
+
+    device: torch.device = torch.device("cpu")
+    precision: str = "fp32"
+    compile: bool = False
+
+    @classmethod
+    def from_args(cls, args: object) -> Placement:
+        return cls(resolve_device(args.device), args.precision, bool(getattr(args, "compile", False)))
+
+    def autocast(self) -> contextlib.AbstractContextManager:
+        return autocast(self.device, self.precision)
+
+    def generator(self, seed: int) -> torch.Generator:
+        return generator(self.device, seed)
+
+
 def autocast(device: torch.device, precision: str) -> contextlib.AbstractContextManager:
     """bfloat16 autocast on the device for bf16 (no gradient scaler needed: bf16 has fp32's range), else nothing."""
     if precision == "bf16":

@@ -313,6 +313,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="closed loop: waypoint rate (default 10 Hz)")
     add_device_args(p)
     args = p.parse_args(argv)
+    device = resolve_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     overrides = {"use_depth": args.depth}
@@ -333,7 +334,6 @@ def main(argv: list[str] | None = None) -> int:
     cfg = preset(args.config, args.model, **overrides)
     split = args.split or args.data.with_name("split.json")
     lr = args.lr if args.lr is not None else PRESET_LR[args.config]
-    device = resolve_device(args.device)
     with process_group(device) as ranks:  # under torchrun: one process per GPU (or CPU share), rank 0 writes
         with exclusive(out) if ranks.main else contextlib.nullcontext():
             if args.restart and ranks.main:

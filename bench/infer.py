@@ -1,56 +1,64 @@
 """Inference latency vs sampling steps for flow matching and diffusion, in one run.
 
     python bench/infer.py [--config small|paper] [--threads N] [--repeats 30] [--models models/fm_cnn models/dp_cnn]
+                          [--device auto|cpu|cuda[:N]] [--precision fp32|bf16] [--compile]
 
-Batch 1, encoder included, median of repeated runs after warm-up. Without --models, fresh networks of the preset
-are timed (latency does not depend on the weights). Prints a table and the ratio DP-16 / FM-1.
+Batch 1, encoder included, median of repeated runs after warm-up, the device synchronised before each clock read.
+Without --models, fresh networks of the preset are timed (latency does not depend on the weights). Prints a table
+and the ratio DP-16 / FM-1.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 import torch
 
-from adlpipe.evaluate import latency_ms
+from adlpipe.cli import Parser
 from adlpipe.policy.checkpoint import load_policy
+from adlpipe.policy.inference import latency_ms
 from adlpipe.policy.models import Policy, preset
+from adlpipe.runtime import Placement, add_device_args
 
 STEPS = [1, 2, 4, 8, 16]
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__)
+    p = Parser("python bench/infer.py", __doc__)
     p.add_argument("--config", default="small", choices=["small", "paper"])
     p.add_argument("--models", nargs="*", type=Path, help="trained model folders instead of fresh networks")
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--threads", type=int, default=0)
-    p.add_argument("--device", default="cpu")
+    add_device_args(p, compile_option=True)
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    placement = Placement.from_args(args)
     torch.manual_seed(0)
     if args.models:
-        policies = {d.name: load_policy(d / "model.pt")[0] for d in args.models}
+        policies = {d.name: load_policy(d / "model.pt", placement)[0] for d in args.models}
     else:
-        policies = {m: Policy(preset(args.config, m)).eval() for m in ("fm_cnn", "dp_cnn", "fm_transformer")}
+        policies = {m: Policy(preset(args.config, m)).to(placement.device).eval()
+                    for m in ("fm_cnn", "dp_cnn", "fm_transformer")}
+        if placement.compile:
+            policies = {m: pol.compile_for_inference() for m, pol in policies.items()}
     rows: dict[str, dict[int, float]] = {}
     for name, pol in policies.items():
-        pol = pol.to(args.device)
-        obs = torch.randn(1, pol.cfg.in_channels, pol.cfg.image_size, pol.cfg.image_size, device=args.device)
+        obs = torch.randn(1, pol.cfg.in_channels, pol.cfg.image_size, pol.cfg.image_size)
         methods = ["euler"] if pol.kind == "fm" else ["ddim", "ddpm"] if pol.kind == "ddpm" else ["direct"]
         for method in methods:
-            rows[f"{name}/{method}"] = {k: latency_ms(pol, obs, k, method, args.repeats) for k in STEPS}
-    print(f"config {args.config}, threads {torch.get_num_threads()}, device {args.device}, batch 1, median ms")
+            rows[f"{name}/{method}"] = {k: latency_ms(pol, obs, k, method, args.repeats, placement) for k in STEPS}
+    print(f"config {args.config}, threads {torch.get_num_threads()}, device {placement.device}, "
+          f"{placement.precision}{', compiled' if placement.compile else ''}, batch 1, median ms")
     print("series".ljust(24) + "".join(f"{k:>9d}" for k in STEPS))
     for name, r in rows.items():
         print(name.ljust(24) + "".join(f"{r[k]:9.2f}" for k in STEPS))
     fm = next(r for n, r in rows.items() if n.endswith("/euler") and n.startswith("fm_cnn"))
     dp = next(r for n, r in rows.items() if n.endswith("/ddim"))
     print(f"DP-16 / FM-1 = {dp[16] / fm[1]:.1f}x")
-    print(json.dumps({"config": args.config, "ms": rows, "dp16_over_fm1": dp[16] / fm[1]}))
+    print(json.dumps({"config": args.config, "device": str(placement.device), "precision": placement.precision,
+                      "compiled": placement.compile, "ms": rows, "dp16_over_fm1": dp[16] / fm[1]}))
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ import torch
 
 from ..atomic import atomic_path
 from ..errors import AdlError
+from ..runtime import Placement
 from .models import ModelConfig, Policy
 
 CHECKPOINTS = {"best": "best.pt", "last": "model.pt"}  # the best validation epoch's EMA weights, and the last ones
@@ -33,9 +34,9 @@ def load_checkpoint(path: Path) -> dict:
         raise AdlError(f"{path}: not a loadable adlpipe checkpoint ({type(exc).__name__}: {exc})") from exc
 
 
-def load_policy(path: Path) -> tuple[Policy, dict]:
+def load_policy(path: Path, placement: Placement | None = None) -> tuple[Policy, dict]:
     """An EMA policy saved by training (model.pt: the last epoch, best.pt: the best validation epoch), ready for
-    inference, and its checkpoint metadata."""
+    inference on the placement's device (compiled if it says so), and its checkpoint metadata."""
     if not path.is_file():
         raise AdlError(f"{path}: no such checkpoint; train the model first (python -m adlpipe.train)")
     ck = load_checkpoint(path)
@@ -46,4 +47,6 @@ def load_policy(path: Path) -> tuple[Policy, dict]:
         policy.load_state_dict(ck["ema"])
     except (TypeError, ValueError, KeyError, RuntimeError, AttributeError) as exc:
         raise AdlError(f"{path}: checkpoint does not match this adlpipe's models ({type(exc).__name__})") from exc
-    return policy.eval(), ck
+    placement = placement or Placement()
+    policy = policy.to(placement.device).eval()
+    return (policy.compile_for_inference() if placement.compile else policy), ck
