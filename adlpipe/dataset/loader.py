@@ -99,15 +99,22 @@ def depth_channel(metres: np.ndarray | None, image_size: int) -> np.ndarray:
     return np.clip(d / DEPTH_SCALE_M - 1.0, -1, 1).astype(np.float32)
 
 
+MAX_CACHED_BYTES = 256 << 20  # per process: first-frame observations are kept in memory up to this much
+
+
 class TrajectoryDataset(Dataset):
     """The seed's ADL setting: the first frame -> the whole trajectory. Lazy: the HDF5 file is opened once per
-    worker process on first access; items are cached per worker (before augmentation, which differs per epoch)."""
+    worker process on first access; items are cached per worker (before augmentation, which differs per epoch) when
+    the whole set fits in MAX_CACHED_BYTES, else read every time."""
 
     def __init__(self, path: str, names: list[str], stats: dict, image_size: int, use_depth: bool = False,
                  cache: bool = True, augment: Augment | None = None, seed: int = 0) -> None:
         self.path, self.names = str(path), list(names)
         self.norm = Normalizer(stats)
-        self.image_size, self.use_depth, self.cache = image_size, use_depth, cache
+        item_bytes = (5 if use_depth else 4) * image_size * image_size * 4
+        # cached only while small: a paper-size set (10,000 episodes at 224 px) would hold 8 GB per worker
+        self.cache = cache and len(self.names) * item_bytes <= MAX_CACHED_BYTES
+        self.image_size, self.use_depth = image_size, use_depth
         self.augment, self.seed, self.epoch = augment, seed, 0
         self._file: h5py.File | None = None
         self._pid = -1
