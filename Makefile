@@ -18,7 +18,7 @@ $(BIN)/.installed: pyproject.toml
 install: $(BIN)/.installed
 
 lint: install
-	$(BIN)/ruff check adlpipe tests bench
+	$(BIN)/ruff check adlpipe tests bench examples
 
 test: install lint
 	$(BIN)/python -m pytest -q

@@ -13,6 +13,13 @@ The output is an index (-o FILE) and a folder of episode files beside it (FILE's
 one folder per run (adlpipe.dataset.shards). Appending writes only the new bags; re-ingesting a bag already in the
 dataset (same sha256) is a no-op. The index is replaced last, by a rename, so a failure or a kill leaves the old
 dataset (or none) whole.
+
+Across machines: every machine (a Slurm array task, a Ray or Dask task) runs the same command with its own
+--shard I/N and takes every N-th bag of the sorted list, starting at the I-th, into its own share folder; the index
+is untouched until `--gather` links every finished share into it:
+
+    python -m adlpipe.ingest data/bags/* -o data/adl.h5 --shard 1/8     # ... through 8/8, in parallel
+    python -m adlpipe.ingest --gather -o data/adl.h5                     # once all shares have finished
 """
 
 from __future__ import annotations
@@ -290,7 +297,7 @@ def _worker(job: tuple) -> tuple[str, list[dict[str, str]], str, str | None]:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = Parser("python -m adlpipe.ingest", __doc__)
-    p.add_argument("bags", nargs="+", type=Path, help=".mcap / .bag files, rosbag2 folders or .db3 files")
+    p.add_argument("bags", nargs="*", type=Path, help=".mcap / .bag files, rosbag2 folders or .db3 files")
     p.add_argument("-o", "--output", type=Path, help="HDF5 file to create or extend (required unless --list)")
     p.add_argument("--list", action="store_true",
                    help="print each bag's topics: type, declared and read counts, rate, largest gap between "
@@ -314,18 +321,46 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    "beside it, if there)")
     p.add_argument("--recover", action="store_true",
                    help="read what is complete in a truncated MCAP and report what was lost")
+    p.add_argument("--shard", type=share_arg, metavar="I/N",
+                   help="take the I-th of N disjoint shares of the bags (every N-th of the sorted list) into a share "
+                   "folder of the dataset, leaving the index to --gather (one share per machine or task)")
+    p.add_argument("--gather", action="store_true",
+                   help="link every finished share (--shard) into the index; give no bags")
     args = p.parse_args(argv)
     if not (args.list or args.suggest_config) and args.output is None:
         p.error("the following arguments are required: -o/--output")
+    if args.gather and (args.bags or args.shard):
+        p.error("--gather takes no bags and no --shard: it links the shares already written")
+    if not args.gather and not args.bags:
+        p.error("the following arguments are required: bags")
     return args
+
+
+def share_arg(text: str) -> tuple[int, int]:
+    """'I/N' -> (I, N), 1 <= I <= N."""
+    i, sep, n = text.partition("/")
+    if not (sep and i.strip().isdigit() and n.strip().isdigit()) or not 1 <= int(i) <= int(n):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a share I/N with 1 <= I <= N (e.g. 3/8)")
+    return int(i), int(n)
+
+
+def share_of(bags: list[Path], share: tuple[int, int]) -> list[Path]:
+    """The I-th of N disjoint shares: every N-th bag of the sorted list from the I-th on. Every machine that is given
+    the same bags (in any order) takes the same share."""
+    i, n = share
+    return sorted(bags, key=lambda b: str(b))[i - 1::n]
 
 
 def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, size: int = 224,
            task: str | None = None, workers: int = 1, skip_bad: bool = False, recover: bool = False,
-           progress: bool = False, allow_tf_gaps: bool = False, segments: Path | None = None) -> dict:
+           progress: bool = False, allow_tf_gaps: bool = False, segments: Path | None = None,
+           share: tuple[int, int] | None = None) -> dict:
     """Ingest bags into the dataset `output` (an index; episode files in adl.shards beside it). Each bag streams
     into its own file as it is read; the index is replaced only when every bag is in. Returns counts; raises
-    AdlError (dataset untouched) on a bad bag."""
+    AdlError (dataset untouched) on a bad bag. share (I, N): only that share of the bags, committed as a share
+    folder for shards.gather, the index untouched."""
+    if share:
+        bags = share_of(bags, share)
     known: set[str] = set()
     if output.exists():
         try:
@@ -336,10 +371,11 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
             raise AdlError(f"{output}: existing output is not a readable HDF5 file ({exc})") from exc
     known_shas = {k.split("#")[0] for k in known}  # a bag whose sha is in the file is skipped whole
     output.parent.mkdir(parents=True, exist_ok=True)
-    shards.remove_unreferenced(output)
+    if not share:  # a share never cleans up: other shares write beside it, on other machines
+        shards.remove_unreferenced(output)
     check_free_space(output, bags)
-    root_existed = shards.shards_dir(output).exists()
-    run, tmp_dir = shards.new_run(output)
+    root_existed = share is not None or shards.shards_dir(output).exists()
+    run, tmp_dir = shards.new_run(output, share)
     try:
         jobs = [(str(b), tm, n_waypoints, size, task, recover, known_shas, allow_tf_gaps, segments,
                  str(tmp_dir / f"{i:06d}.h5")) for i, b in enumerate(bags)]
@@ -357,7 +393,9 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
         notes = [f"{b}: {n}" for b, rows, n, _ in results if n and rows]
         skipped = sum(1 for _b, rows, _n, err in results if not rows and not err)
         counts = {"new": len(new), "skipped": skipped, "bad": len(errors), "errors": errors, "notes": notes}
-        if new:
+        if new and share:
+            shards.commit_share(output, run, tmp_dir, list(new.values()), n_waypoints, size)
+        elif new:
             shards.commit(output, run, tmp_dir, list(new.values()), n_waypoints, size)
         return counts
     finally:
@@ -420,16 +458,26 @@ def main(argv: list[str] | None = None) -> int:
             print("\n".join(list_lines(s)))
             bad += sum(t.declared not in (None, t.read) for t in s.topics.values())
         return 1 if bad else 0
-    tm = TopicMap.load(args.config)
     check_outputs(args.output)
-    with exclusive(args.output):
+    if args.gather:
+        with exclusive(args.output):
+            g = shards.gather(args.output)
+        print(f"{args.output}: {g['new']} episode(s) linked from {g['shares']} share(s), {g['episodes']} in all")
+        return 0
+    tm = TopicMap.load(args.config)
+    lock = args.output.with_name(f"{args.output.name}.share-{args.shard[0]}-of-{args.shard[1]}") if args.shard \
+        else args.output  # shares run side by side; each excludes only a second run of itself
+    with exclusive(lock):
         c = ingest(args.bags, args.output, tm, args.waypoints, args.size, args.task, args.workers, args.skip_bad,
-                   args.recover, progress=True, allow_tf_gaps=args.allow_tf_gaps, segments=args.segments)
+                   args.recover, progress=True, allow_tf_gaps=args.allow_tf_gaps, segments=args.segments,
+                   share=args.shard)
     for note in c["notes"]:
         print(f"note: {note}", file=sys.stderr)
     for err in c["errors"]:
         print(f"adlpipe.ingest: skipped bad bag: {err}", file=sys.stderr)
-    print(f"{args.output}: {c['new']} episode(s) added, {c['skipped']} already present, {c['bad']} bad bag(s)")
+    where = f" into share {args.shard[0]}/{args.shard[1]} (link it with --gather)" if args.shard else ""
+    print(f"{args.output}: {c['new']} episode(s) added{where}, {c['skipped']} already present, {c['bad']} bad "
+          "bag(s)")
     return 1 if c["bad"] else 0
 
 

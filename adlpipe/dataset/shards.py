@@ -7,18 +7,25 @@ An ingest writes its bags' files into a hidden run folder, renames the folder in
 (temp file + rename). A kill before the index is replaced leaves the old index, which names none of the new files:
 the old dataset, whole. The folder of a run that never reached the index is removed by the next ingest. Appending
 writes the new bags' files and an index of a few bytes per episode: work in proportion to the new data.
+
+A share of a larger ingest (ingest --shard I/N, one per machine or scheduler task) commits its folder (share-*)
+with a catalog.json and leaves the index alone; `ingest --gather` then links every finished share into the index at
+once, so no two shares ever write the same file.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
+import socket
 import time
 from pathlib import Path
 
 import h5py
 
 from ..atomic import atomic_path
+from ..errors import AdlError
 from . import schema
 
 
@@ -27,9 +34,18 @@ def shards_dir(index: Path) -> Path:
     return index.with_name(index.stem + ".shards") if index.suffix else index.with_name(index.name + ".shards")
 
 
-def new_run(index: Path) -> tuple[str, Path]:
-    """(run name, hidden folder to write it into)."""
-    name = time.strftime("run-%Y%m%d-%H%M%S") + f"-{os.getpid()}"
+SHARE_CATALOG = "catalog.json"
+
+
+def new_run(index: Path, share: tuple[int, int] | None = None) -> tuple[str, Path]:
+    """(run name, hidden folder to write it into). A share's name says which share and where it ran (its pid means
+    nothing on the machine that gathers)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    if share:
+        host = "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:40]
+        name = f"share-{share[0]:04d}-of-{share[1]:04d}-{stamp}-{host}-{os.getpid()}"
+    else:
+        name = f"run-{stamp}-{os.getpid()}"
     tmp = shards_dir(index) / f".{name}.tmp"
     tmp.mkdir(parents=True, exist_ok=False)
     return name, tmp
@@ -47,6 +63,58 @@ def commit(index: Path, run: str, tmp_dir: Path, rows: list[dict[str, str]], n_w
             old = schema.read_catalog(f)
     new = [dict(r, file=f"{shards_dir(index).name}/{run}/{r['file']}") for r in rows]
     write_index(index, old + new, n_waypoints, image_size)
+
+
+def commit_share(index: Path, run: str, tmp_dir: Path, rows: list[dict[str, str]], n_waypoints: int,
+                 image_size: int) -> None:
+    """A share's folder moves into place with its catalog; the index is left to --gather."""
+    (tmp_dir / SHARE_CATALOG).write_text(json.dumps(
+        {"format_version": schema.FORMAT_VERSION, "n_waypoints": n_waypoints, "image_size": image_size,
+         "rows": rows}))
+    os.replace(tmp_dir, shards_dir(index) / run)
+
+
+def gather(index: Path) -> dict[str, int]:
+    """Link the episodes of every committed share into the index (the episodes it already names are kept, a key
+    is linked once). Run it after every share has finished: the hidden folders of unfinished shares are removed,
+    as are shares that added nothing (all their bags were in the dataset already)."""
+    root = shards_dir(index)
+    folders = sorted(d for d in root.iterdir() if d.name.startswith("share-")) if root.is_dir() else []
+    old, attrs = [], None
+    if index.exists():
+        with h5py.File(index, "r") as f:
+            schema.check_file(f, str(index))
+            old = schema.read_catalog(f)
+            attrs = (int(f.attrs["n_waypoints"]), int(f.attrs["image_size"]))
+    known = {r["key"] for r in old}
+    named = {Path(r["file"]).parts[1] for r in old if len(Path(r["file"]).parts) > 2}
+    new: list[dict[str, str]] = []
+    unused: list[Path] = []
+    for d in folders:
+        try:
+            cat = json.loads((d / SHARE_CATALOG).read_text())
+            share_attrs = (int(cat["n_waypoints"]), int(cat["image_size"]))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise AdlError(f"{d / SHARE_CATALOG}: not a share catalog ({type(exc).__name__}: {exc})") from exc
+        if cat.get("format_version") != schema.FORMAT_VERSION:
+            raise AdlError(f"{d}: a share of format version {cat.get('format_version')}, this adlpipe writes "
+                           f"{schema.FORMAT_VERSION}; ingest its bags again")
+        if attrs is not None and share_attrs != attrs:
+            raise AdlError(f"{d}: {share_attrs[0]} waypoints at {share_attrs[1]} px, the dataset has {attrs[0]} at "
+                           f"{attrs[1]} px; ingest every share with the same --waypoints and --size")
+        attrs = share_attrs
+        rows = [dict(r, file=f"{root.name}/{d.name}/{r['file']}") for r in cat["rows"] if r["key"] not in known]
+        known |= {r["key"] for r in rows}
+        new += rows
+        if not rows and d.name not in named:
+            unused.append(d)
+    if new:
+        write_index(index, old + new, *attrs)
+    for d in unused:
+        shutil.rmtree(d, ignore_errors=True)
+    for d in root.glob(".share-*.tmp") if root.is_dir() else []:
+        shutil.rmtree(d, ignore_errors=True)
+    return {"shares": len(folders), "new": len(new), "episodes": len(old) + len(new)}
 
 
 def write_index(index: Path, rows: list[dict[str, str]], n_waypoints: int, image_size: int) -> None:
