@@ -1,0 +1,274 @@
+"""A LeRobotDataset v3.0 of every frame, written with pyarrow as the frames are read (one episode in memory).
+
+    meta/info.json                                  codebase_version v3.0, fps, features, totals, path templates
+    meta/stats.json                                 per feature: min, max, mean, std, count
+    meta/tasks.parquet                              index: task (string), column task_index
+    meta/episodes/chunk-000/file-000.parquet        per episode: episode_index, tasks, length, where its frames are
+                                                    (data/chunk_index, data/file_index, dataset_from/to_index),
+                                                    stats/<feature>/<stat>
+    data/chunk-{c:03d}/file-{f:03d}.parquet         one row per frame; a new file past data_files_size_in_mb
+
+Per frame: observation.images.rgb (PNG), observation.images.depth (16-bit PNG, millimetres, 0 = no return; when the
+dataset has depth), observation.images.affordance (8-bit PNG of the map; when it has maps), observation.state
+(end effector x, y, z in the base frame, the joints, the gripper; NaN where a bag had no sample near the frame),
+action (the end effector's position at the next frame; the last frame repeats its own), timestamp (the camera
+stamp from the episode's first frame), frame_index, episode_index, index, task_index. Images are stored in the
+parquet files as Hugging Face `datasets` Image structs ({bytes, path}), as LeRobot does for image features.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from ..errors import AdlError
+from . import schema
+
+CODEBASE_VERSION = "v3.0"
+CHUNKS_SIZE = 1000  # files per chunk folder
+DATA_FILE_MB = 100  # a data file is closed after this much
+DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+EPISODES_PATH = "meta/episodes/chunk-000/file-000.parquet"
+RGB, DEPTH, AFFORDANCE = "observation.images.rgb", "observation.images.depth", "observation.images.affordance"
+STATE, ACTION = "observation.state", "action"
+IMAGE_STRUCT = pa.struct([("bytes", pa.binary()), ("path", pa.string())])
+
+
+class Moments:
+    """Running min, max, mean and std over samples of a feature (per channel for images)."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.lo = self.hi = self.sum = self.sq = None
+
+    def add(self, x: np.ndarray) -> None:
+        """x: (N, D) samples; NaNs are left out."""
+        x = x.astype(np.float64)
+        ok = ~np.isnan(x)
+        lo, hi = np.where(ok, x, np.inf).min(0), np.where(ok, x, -np.inf).max(0)
+        s, sq, n = np.where(ok, x, 0).sum(0), np.where(ok, x * x, 0).sum(0), ok.sum(0)
+        if self.lo is None:
+            self.lo, self.hi, self.sum, self.sq, self.count = lo, hi, s, sq, n
+        else:
+            self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
+            self.sum, self.sq, self.count = self.sum + s, self.sq + sq, self.count + n
+        self.n += len(x)
+
+    def merge(self, other: Moments) -> None:
+        if other.lo is None:
+            return
+        if self.lo is None:
+            self.lo, self.hi, self.sum, self.sq, self.count, self.n = (other.lo, other.hi, other.sum, other.sq,
+                                                                      other.count, other.n)
+            return
+        self.lo, self.hi = np.minimum(self.lo, other.lo), np.maximum(self.hi, other.hi)
+        self.sum, self.sq, self.count, self.n = (self.sum + other.sum, self.sq + other.sq,
+                                                 self.count + other.count, self.n + other.n)
+
+    def stats(self, image: bool) -> dict[str, list]:
+        c = np.maximum(self.count, 1)
+        mean = self.sum / c
+        std = np.sqrt(np.maximum(self.sq / c - mean * mean, 0))
+        shape = (-1, 1, 1) if image else (-1,)  # LeRobot keeps image stats per channel as (C, 1, 1)
+        out = {"min": self.lo, "max": self.hi, "mean": mean, "std": std}
+        return {**{k: np.where(np.isfinite(v), v, np.nan).reshape(shape).tolist() for k, v in out.items()},
+                "count": [int(self.n)]}
+
+
+def png(image: np.ndarray) -> dict[str, object]:
+    ok, buf = cv2.imencode(".png", image[..., ::-1] if image.ndim == 3 else image)
+    if not ok:
+        raise AdlError("cannot encode a frame as PNG")
+    return {"bytes": buf.tobytes(), "path": None}
+
+
+@dataclass
+class Layout:
+    """What the export holds, decided from the dataset before the first frame is written."""
+
+    size: int
+    joint_names: list[str]
+    depth: bool
+    affordance: bool
+    fps: int
+    image_keys: list[str] = field(default_factory=list)
+
+    def features(self) -> dict[str, dict]:
+        img = {"dtype": "image", "names": ["height", "width", "channels"]}
+        f: dict[str, dict] = {RGB: {**img, "shape": [self.size, self.size, 3]}}
+        if self.depth:
+            f[DEPTH] = {**img, "shape": [self.size, self.size, 1], "info": {"is_depth_map": True, "unit": "mm"}}
+        if self.affordance:
+            f[AFFORDANCE] = {**img, "shape": [self.size, self.size, 1]}
+        state = ["ee_x", "ee_y", "ee_z", *self.joint_names, "gripper"]
+        f[STATE] = {"dtype": "float32", "shape": [len(state)], "names": state}
+        f[ACTION] = {"dtype": "float32", "shape": [3], "names": ["ee_x", "ee_y", "ee_z"]}
+        for key, dtype in (("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"),
+                           ("index", "int64"), ("task_index", "int64")):
+            f[key] = {"dtype": dtype, "shape": [1], "names": None}
+        return f
+
+    def schema(self) -> pa.Schema:
+        feats = self.features()
+        fields = [pa.field(k, IMAGE_STRUCT) for k, v in feats.items() if v["dtype"] == "image"]
+        fields += [pa.field(STATE, pa.list_(pa.float32(), len(feats[STATE]["names"]))),
+                   pa.field(ACTION, pa.list_(pa.float32(), 3)), pa.field("timestamp", pa.float32())]
+        fields += [pa.field(k, pa.int64()) for k in ("frame_index", "episode_index", "index", "task_index")]
+        hf = {"info": {"features": {k: ({"_type": "Image"} if v["dtype"] == "image" else
+                                        {"feature": {"dtype": "float32", "_type": "Value"}, "length": v["shape"][0],
+                                         "_type": "Sequence"} if k in (STATE, ACTION) else
+                                        {"dtype": v["dtype"], "_type": "Value"}) for k, v in feats.items()}}}
+        return pa.schema(fields, metadata={"huggingface": json.dumps(hf)})
+
+
+def plan(f: h5py.File, names: list[str]) -> Layout:
+    """Decide the features from the episodes' small arrays; every episode must have the same joints."""
+    joints: list[str] | None = None
+    depth = affordance = False
+    rates = []
+    for n in names:
+        g = f[schema.EPISODES][n]
+        jn = [str(j) for j in g["series/joint_pos"].attrs["joint_names"]]
+        if joints is None:
+            joints = jn
+        elif jn != joints:
+            raise AdlError(f"episode {n}: joints {jn} differ from {joints} of the first episode; a LeRobot dataset "
+                           "has one state vector: export the robots' episodes separately (--episodes)")
+        fr = g["frames"]
+        depth |= bool(g.attrs.get("has_depth", False)) and "depth" in fr and len(fr["depth"]) > 0
+        affordance |= bool(g.attrs.get("has_affordance", False)) and "affordance" in fr and len(fr["affordance"]) > 0
+        t = fr["t"][()]
+        if len(t) > 1:
+            rates.append(1.0 / float(np.median(np.diff(t))))
+    fps = max(1, int(round(float(np.median(rates))))) if rates else 1
+    return Layout(int(f.attrs["image_size"]), joints or [], depth, affordance, fps)
+
+
+class Export:
+    """Writes episodes one after another into the v3 layout under `root` (which must not exist yet)."""
+
+    def __init__(self, root: Path, layout: Layout, tasks: list[str]) -> None:
+        self.root, self.layout = root, layout
+        self.task_index = {t: i for i, t in enumerate(tasks)}
+        self.schema = layout.schema()
+        self.frames = 0
+        self.chunk = self.file = 0
+        self.writer: pq.ParquetWriter | None = None
+        self.episodes: list[dict] = []
+        self.totals: dict[str, Moments] = {}
+
+    def _data_file(self) -> pq.ParquetWriter:
+        if self.writer is not None and self.path.stat().st_size > DATA_FILE_MB * 1e6:
+            self.writer.close()
+            self.writer = None
+            self.file += 1
+            if self.file >= CHUNKS_SIZE:
+                self.chunk, self.file = self.chunk + 1, 0
+        if self.writer is None:
+            self.path = self.root / DATA_PATH.format(chunk_index=self.chunk, file_index=self.file)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.writer = pq.ParquetWriter(self.path, self.schema)
+        return self.writer
+
+    def add(self, g: h5py.Group, index: int) -> None:
+        """Episode `index` from its HDF5 group: one row group of its frames."""
+        fr = g["frames"]
+        t = fr["t"][()]
+        T = len(t)
+        if T == 0:
+            raise AdlError(f"episode {g.name}: no frames to export")
+        ee = fr["ee_pos"][()].astype(np.float32)
+        joints = fr["joint_pos"][()].astype(np.float32).reshape(T, -1)
+        gripper = fr["gripper"][()].astype(np.float32).reshape(T, 1)
+        state = np.concatenate([ee, joints, gripper], 1)
+        action = np.concatenate([ee[1:], ee[-1:]], 0)
+        task = str(g.attrs["task"])
+        stats = {STATE: Moments(), ACTION: Moments(), RGB: Moments()}
+        stats[STATE].add(state)
+        stats[ACTION].add(action)
+        cols: dict[str, list] = {RGB: []}
+        for k in range(T):  # one frame decoded at a time; the episode's PNG bytes are what is held
+            rgb = fr["rgb"][k]
+            cols[RGB].append(png(rgb))
+            stats[RGB].add(rgb.reshape(-1, 3)[:: max(1, rgb.size // 3 // 4096)] / 255.0)
+        if self.layout.depth:
+            stats[DEPTH] = Moments()
+            cols[DEPTH] = []
+            di = fr["depth_index"][()] if "depth_index" in fr else np.full(T, -1)
+            blank = np.zeros((self.layout.size, self.layout.size), np.uint16)
+            for k in range(T):
+                d = fr["depth"][int(di[k])] if di[k] >= 0 else blank
+                cols[DEPTH].append(png(d))
+                stats[DEPTH].add(d.reshape(-1, 1)[:: max(1, d.size // 4096)].astype(np.float64))
+        if self.layout.affordance:
+            stats[AFFORDANCE] = Moments()
+            cols[AFFORDANCE] = []
+            ai = fr["affordance_index"][()]
+            blank = np.zeros((self.layout.size, self.layout.size), np.float32)
+            for k in range(T):
+                a = fr["affordance"][int(ai[k])] if ai[k] >= 0 else blank
+                a8 = (np.clip(np.nan_to_num(a), 0, 1) * 255).round().astype(np.uint8)
+                cols[AFFORDANCE].append(png(a8))
+                stats[AFFORDANCE].add(a8.reshape(-1, 1)[:: max(1, a8.size // 4096)] / 255.0)
+        writer = self._data_file()
+        table = pa.table({
+            **{k: pa.array(v, IMAGE_STRUCT) for k, v in cols.items()},
+            STATE: pa.array(list(state), self.schema.field(STATE).type),
+            ACTION: pa.array(list(action), self.schema.field(ACTION).type),
+            "timestamp": pa.array(t.astype(np.float32), pa.float32()),
+            "frame_index": pa.array(np.arange(T), pa.int64()),
+            "episode_index": pa.array(np.full(T, index), pa.int64()),
+            "index": pa.array(np.arange(self.frames, self.frames + T), pa.int64()),
+            "task_index": pa.array(np.full(T, self.task_index[task]), pa.int64()),
+        }, schema=self.schema)
+        writer.write_table(table)
+        ep = {"episode_index": index, "tasks": [task], "length": T, "data/chunk_index": self.chunk,
+              "data/file_index": self.file, "dataset_from_index": self.frames, "dataset_to_index": self.frames + T,
+              "meta/episodes/chunk_index": 0, "meta/episodes/file_index": 0, "adlpipe/name": g.name.split("/")[-1]}
+        for key, m in stats.items():
+            image = key.startswith("observation.images.")
+            for stat, v in m.stats(image).items():
+                ep[f"stats/{key}/{stat}"] = v
+            self.totals.setdefault(key, Moments()).merge(m)
+        self.episodes.append(ep)
+        self.frames += T
+
+    def finish(self) -> dict:
+        """Close the data file and write meta/: info, stats, tasks, episodes."""
+        if self.writer is not None:
+            self.writer.close()
+        meta = self.root / "meta"
+        meta.mkdir(parents=True, exist_ok=True)
+        feats = self.layout.features()
+        info = {"codebase_version": CODEBASE_VERSION, "robot_type": None, "total_episodes": len(self.episodes),
+                "total_frames": self.frames, "total_tasks": len(self.task_index), "chunks_size": CHUNKS_SIZE,
+                "data_files_size_in_mb": DATA_FILE_MB, "video_files_size_in_mb": 200, "fps": self.layout.fps,
+                "splits": {"train": f"0:{len(self.episodes)}"}, "data_path": DATA_PATH, "video_path": None,
+                "features": feats}
+        (meta / "info.json").write_text(json.dumps(info, indent=4))
+        stats = {k: m.stats(k.startswith("observation.images.")) for k, m in self.totals.items()}
+        (meta / "stats.json").write_text(json.dumps(stats, indent=4, allow_nan=True))
+        write_tasks(meta / "tasks.parquet", sorted(self.task_index, key=self.task_index.get))
+        eps = self.root / EPISODES_PATH
+        eps.parent.mkdir(parents=True, exist_ok=True)
+        pq.write_table(pa.Table.from_pylist(self.episodes), eps)
+        return info
+
+
+def write_tasks(path: Path, tasks: list[str]) -> None:
+    """tasks.parquet as pandas writes a DataFrame indexed by task (LeRobot's layout): a task_index column and the
+    task strings as the index, so pd.read_parquet gives them back as the index."""
+    pandas_meta = {"index_columns": ["task"], "column_indexes": [], "columns": [
+        {"name": "task_index", "field_name": "task_index", "pandas_type": "int64", "numpy_type": "int64",
+         "metadata": None},
+        {"name": "task", "field_name": "task", "pandas_type": "unicode", "numpy_type": "object", "metadata": None}],
+        "creator": {"library": "pyarrow", "version": pa.__version__}}
+    table = pa.table({"task_index": pa.array(range(len(tasks)), pa.int64()), "task": pa.array(tasks, pa.string())})
+    pq.write_table(table.replace_schema_metadata({"pandas": json.dumps(pandas_meta)}), path)

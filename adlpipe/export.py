@@ -1,0 +1,72 @@
+"""Export the dataset for other tools: a LeRobotDataset v3.0 of every frame.
+
+    python -m adlpipe.export --format lerobot data/adl.h5 exports/adl_lerobot [--episodes NAME ...] [--split-part train]
+
+Layout and columns: adlpipe/dataset/lerobot.py. Every frame of every episode (or of the named ones, or of one part of
+the split), one episode in memory at a time. The export is written into a hidden folder beside OUT and renamed
+into place when complete: an interrupted export leaves nothing at OUT. Read it with LeRobot:
+LeRobotDataset("adl", root="exports/adl_lerobot").
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from .cli import Parser
+from .dataset import schema
+from .dataset.lerobot import Export, plan
+from .dataset.splits import load_split
+from .errors import AdlError, run_cli
+
+
+def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progress: bool = False) -> dict:
+    """Write the LeRobot v3 export of `names` (default: every episode) to `out`; returns its info.json."""
+    if out.exists():
+        raise AdlError(f"{out}: already exists; export into a new folder")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        with schema.open_dataset(data, names or []) as f:
+            names = names or schema.episode_names(f)
+            if not names:
+                raise AdlError(f"{data}: no episodes to export")
+            layout = plan(f, names)
+            tasks = sorted({str(f[schema.EPISODES][n].attrs["task"]) for n in names})
+            export = Export(tmp, layout, tasks)
+            for i, n in enumerate(tqdm(names, desc="export", unit="episode", file=sys.stderr,
+                                       disable=None if progress else True)):
+                export.add(f[schema.EPISODES][n], i)
+            info = export.finish()
+        tmp.rename(out)
+        return info
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = Parser("python -m adlpipe.export", __doc__)
+    p.add_argument("data", type=Path, help="the dataset (index file written by ingest)")
+    p.add_argument("out", type=Path, help="folder to create")
+    p.add_argument("--format", choices=["lerobot"], default="lerobot", help="lerobot: LeRobotDataset v3.0")
+    p.add_argument("--episodes", nargs="+", help="episode names to export (default: all)")
+    p.add_argument("--split", type=Path, help="split JSON for --split-part (default: split.json beside the data)")
+    p.add_argument("--split-part", choices=["train", "test"], help="export only this part of the split")
+    args = p.parse_args(argv)
+    names = args.episodes
+    if args.split_part:
+        names = load_split(args.split or args.data.with_name("split.json"))[args.split_part]
+        if not names:
+            raise AdlError(f"the {args.split_part} split is empty")
+    info = export_lerobot(args.data, args.out, names, progress=True)
+    print(f"{args.out}: LeRobotDataset {info['codebase_version']}, {info['total_episodes']} episode(s), "
+          f"{info['total_frames']} frames at {info['fps']} fps, {info['total_tasks']} task(s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli("adlpipe.export", main))

@@ -1,0 +1,107 @@
+"""The LeRobot v3 export, read back with pyarrow against the source dataset and the v3 layout (LeRobot itself does
+not install beside torch 2.13: bench/lerobot_check.py loads the export with LeRobotDataset in its own venv)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from adlpipe.dataset import schema
+from adlpipe.export import export_lerobot
+
+
+@pytest.fixture(scope="module")
+def exported(ingested: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("lerobot") / "adl"
+    export_lerobot(ingested, out)
+    return out
+
+
+def source(ingested: Path) -> list[dict]:
+    """Per episode, in catalog order: task, frame count, state, first RGB frame, first depth image (mm)."""
+    out = []
+    with schema.open_dataset(ingested) as f:
+        for n in schema.episode_names(f):
+            g = f[schema.EPISODES][n]
+            fr = g["frames"]
+            state = np.concatenate([fr["ee_pos"][()], fr["joint_pos"][()], fr["gripper"][()][:, None]], 1)
+            out.append({"task": str(g.attrs["task"]), "T": len(fr["t"]), "state": state, "rgb0": fr["rgb"][0],
+                        "depth0": fr["depth"][int(fr["depth_index"][0])] if fr["depth_index"][0] >= 0 else None})
+    return out
+
+
+def test_the_v3_layout_holds_every_frame_with_its_task(exported: Path, ingested: Path) -> None:
+    src = source(ingested)
+    info = json.loads((exported / "meta" / "info.json").read_text())
+    assert info["codebase_version"] == "v3.0"
+    assert info["total_episodes"] == len(src) == 3
+    assert info["total_frames"] == sum(e["T"] for e in src)
+    assert info["fps"] == 5 and info["video_path"] is None
+    assert info["data_path"] == "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+    for key in ("observation.images.rgb", "observation.state", "action", "timestamp", "frame_index",
+                "episode_index", "index", "task_index"):
+        assert key in info["features"], key
+    tasks = pq.read_table(exported / "meta" / "tasks.parquet")
+    assert tasks.column("task").to_pylist() == sorted({e["task"] for e in src})
+    assert json.loads(tasks.schema.metadata[b"pandas"])["index_columns"] == ["task"]
+    eps = pq.read_table(exported / "meta" / "episodes" / "chunk-000" / "file-000.parquet").to_pylist()
+    data = pq.read_table(exported / "data" / "chunk-000" / "file-000.parquet")
+    assert data.num_rows == info["total_frames"]
+    assert data.column("index").to_pylist() == list(range(data.num_rows))
+    task_of = dict(zip(tasks.column("task").to_pylist(), tasks.column("task_index").to_pylist(), strict=True))
+    ep_col, ti_col = data.column("episode_index").to_pylist(), data.column("task_index").to_pylist()
+    for i, (ep, s) in enumerate(zip(eps, src, strict=True)):
+        assert ep["episode_index"] == i and ep["length"] == s["T"] and ep["tasks"] == [s["task"]]
+        lo, hi = ep["dataset_from_index"], ep["dataset_to_index"]
+        assert hi - lo == s["T"] and ep_col[lo:hi] == [i] * s["T"] and ti_col[lo:hi] == [task_of[s["task"]]] * s["T"]
+        frames = data.column("frame_index").to_pylist()[lo:hi]
+        assert frames == list(range(s["T"]))
+        state = np.array(data.column("observation.state").to_pylist()[lo:hi], np.float32)
+        np.testing.assert_array_equal(state, s["state"].astype(np.float32))
+        action = np.array(data.column("action").to_pylist()[lo:hi], np.float32)
+        np.testing.assert_array_equal(action[:-1], state[1:, :3])  # the next end-effector position
+        rgb = cv2.imdecode(np.frombuffer(data.column("observation.images.rgb")[lo].as_py()["bytes"], np.uint8),
+                           cv2.IMREAD_UNCHANGED)[..., ::-1]
+        np.testing.assert_array_equal(rgb, s["rgb0"])  # PNG: lossless
+        if s["depth0"] is not None:
+            d = cv2.imdecode(np.frombuffer(data.column("observation.images.depth")[lo].as_py()["bytes"], np.uint8),
+                             cv2.IMREAD_UNCHANGED)
+            assert d.dtype == np.uint16
+            np.testing.assert_array_equal(d, s["depth0"])
+    hf = json.loads(data.schema.metadata[b"huggingface"])["info"]["features"]
+    assert hf["observation.images.rgb"] == {"_type": "Image"}
+
+
+def test_stats_equal_the_source(exported: Path, ingested: Path) -> None:
+    src = source(ingested)
+    stats = json.loads((exported / "meta" / "stats.json").read_text())
+    state = np.concatenate([e["state"] for e in src]).astype(np.float64)
+    s = stats["observation.state"]
+    np.testing.assert_allclose(s["min"], np.nanmin(state, 0), rtol=1e-6)
+    np.testing.assert_allclose(s["max"], np.nanmax(state, 0), rtol=1e-6)
+    np.testing.assert_allclose(s["mean"], np.nanmean(state, 0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(s["std"], np.nanstd(state, 0), rtol=1e-4, atol=1e-6)
+    assert s["count"] == [len(state)]
+    with schema.open_dataset(ingested) as f:  # 64 px frames: every pixel counts (larger ones are subsampled)
+        pixels = np.concatenate([f[schema.EPISODES][n]["frames/rgb"][()].reshape(-1, 3) / 255.0
+                                 for n in schema.episode_names(f)])
+    rgb = stats["observation.images.rgb"]
+    assert np.array(rgb["mean"]).shape == (3, 1, 1)  # per channel, as LeRobot keeps image statistics
+    np.testing.assert_allclose(np.ravel(rgb["mean"]), pixels.mean(0), rtol=1e-6)
+    np.testing.assert_allclose(np.ravel(rgb["std"]), pixels.std(0), rtol=1e-5)
+    np.testing.assert_allclose(np.ravel(rgb["max"]), pixels.max(0))
+
+
+def test_an_export_never_overwrites_and_leaves_nothing_when_it_fails(ingested: Path, tmp_path: Path) -> None:
+    from conftest import one_line_error, run_module
+
+    (tmp_path / "taken").mkdir()
+    assert "already exists" in one_line_error(run_module("export", ingested, tmp_path / "taken"))
+    line = one_line_error(run_module("export", ingested, tmp_path / "new", "--episodes", "no-such-episode"))
+    assert "no-such-episode" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
