@@ -128,7 +128,8 @@ def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -
         best = by_ck["best"]
         default = best.get(DEFAULTS.get(model, "")) or min(best.values(), key=lambda r: r["steps"])
         h = {"px": round(default["px"], 3), "px224": round(default["px224"], 3), "ms": round(default["ms"], 2),
-             "converged": training.get(model, {}).get("converged")}
+             "converged": training.get(model, {}).get("converged"),
+             "val_px_best": training.get(model, {}).get("val_px_best")}
         r16 = best.get(f"{default['method']}/16")
         if r16 is not None and default["steps"] != 16:
             h["px_16_steps"] = round(r16["px"], 3)
