@@ -1,7 +1,13 @@
-"""Write a Rerun recording of a policy's predictions on episodes of the dataset.
+"""Write a Rerun recording of a policy's predictions on episodes of the dataset, or of the dataset itself.
 
     python -m adlpipe.inspect --model models/fm_cnn --episodes 0 1 2 -o preds.rrd     (indices into the test split)
+    python -m adlpipe.inspect --dataset --data data/adl.h5 [--episodes NAME|INDEX ...] -o data.rrd
     rerun preds.rrd
+
+--dataset: every frame of every episode (or of those named; indices count all episodes in catalog order), one
+after another on the `dataset_time` timeline: the camera image with the affordance overlay and the projected end
+effector, the end-effector path and the camera frustum in 3D, the joints and gripper as time series
+(adlpipe/dataset/viewer.py).
 
 Per episode (timeline `episode`): the RGB image with the affordance map as a colour-mapped overlay, the ground-truth
 and predicted 2D trajectories as line strips on the image, the 3D trajectories in the base frame and the camera
@@ -13,7 +19,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -24,6 +29,7 @@ from .cli import NON_NEGATIVE, Parser, int_range
 from .dataset import schema
 from .dataset.loader import Normalizer, observation
 from .dataset.splits import load_split
+from .dataset.viewer import affordance_overlay, write_dataset_recording
 from .errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import predict
@@ -31,13 +37,6 @@ from .runtime import Placement, add_device_args
 
 GT_COLOR = [40, 200, 40]
 PRED_COLOR = [230, 60, 40]
-
-
-def affordance_overlay(aff: np.ndarray) -> np.ndarray:
-    """RGBA: a jet colour map whose opacity follows the affordance value."""
-    a = np.clip(np.nan_to_num(aff), 0, 1)
-    rgb = cv2.cvtColor(cv2.applyColorMap((a * 255).astype(np.uint8), cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)
-    return np.dstack([rgb, (a * 180).astype(np.uint8)])
 
 
 def blueprint() -> rrb.Blueprint:
@@ -78,11 +77,13 @@ def _record(path: Path, episodes: list[schema.Episode], preds: list[np.ndarray],
 
 def main(argv: list[str] | None = None) -> int:
     p = Parser("python -m adlpipe.inspect", __doc__)
-    p.add_argument("--model", type=Path, required=True, help="model folder (holding model.pt)")
+    p.add_argument("--model", type=Path, help="model folder (holding model.pt); or --dataset")
+    p.add_argument("--dataset", action="store_true", help="record the dataset's frames instead of predictions")
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
     p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
-    p.add_argument("--episodes", nargs="+", default=["0"],
-                   help="test-split indices or episode names (default: the first test episode)")
+    p.add_argument("--episodes", nargs="+",
+                   help="test-split indices or episode names (default: the first test episode; with --dataset, "
+                   "every episode)")
     p.add_argument("--samples", type=int_range(1, 1000), default=4, help="predicted samples drawn per episode")
     p.add_argument("--steps", type=int_range(1, 100), default=4)
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
@@ -91,7 +92,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-o", "--output", type=Path, default=Path("preds.rrd"))
     add_device_args(p, compile_option=True)
     args = p.parse_args(argv)
+    if args.dataset == (args.model is not None):
+        p.error("give either --model (predictions) or --dataset (the dataset's frames)")
     check_outputs(args.output)
+    if args.dataset:
+        return record_dataset(args)
     placement = Placement.from_args(args)
     policy, ck = load_policy(args.model / CHECKPOINTS[args.checkpoint], placement)
     norm = Normalizer(ck["stats"])
@@ -99,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         all_names = schema.episode_names(f)
         test = load_split(args.split or args.data.with_name("split.json"))["test"] or all_names
         names = []
-        for e in args.episodes:
+        for e in args.episodes or ["0"]:
             if e.isdigit():
                 if int(e) >= len(test):
                     raise AdlError(f"episode index {e} out of range: the test split has {len(test)} episodes")
@@ -117,6 +122,27 @@ def main(argv: list[str] | None = None) -> int:
                            for _ in range(k)], dim=1)
     write_recording(args.output, eps, list(samples.numpy()), policy.cfg.model)
     print(f"{args.output}: {len(eps)} episode(s), {k} sample(s) each from {args.model}")
+    return 0
+
+
+def record_dataset(args: object) -> int:
+    with schema.open_dataset(args.data) as f:
+        all_names = schema.episode_names(f)
+    names = []
+    for e in args.episodes or []:
+        if e.isdigit() and e not in all_names:
+            if int(e) >= len(all_names):
+                raise AdlError(f"episode index {e} out of range: {args.data} has {len(all_names)} episodes")
+            names.append(all_names[int(e)])
+        elif e in all_names:
+            names.append(e)
+        else:
+            raise AdlError(f"no episode {e!r} in {args.data}")
+    names = names or all_names
+    if not names:
+        raise AdlError(f"{args.data}: no episodes to record")
+    frames = write_dataset_recording(args.output, args.data, names)
+    print(f"{args.output}: {len(names)} episode(s), {frames} frames of {args.data}")
     return 0
 
 
