@@ -39,6 +39,10 @@ def expect(data: Path, out: Path) -> None:
                 "tasks": [str(g.attrs["task"]) for g in eps], "state_min": np.nanmin(state, 0).tolist(),
                 "state_max": np.nanmax(state, 0).tolist(), "state_mean": np.nanmean(state, 0).tolist(),
                 "image_size": int(f.attrs["image_size"])}
+        fr = eps[0]["frames"]
+        if "depth_index" in fr and fr["depth_index"][0] >= 0:  # the first frame's depth, millimetres
+            d = fr["depth"][int(fr["depth_index"][0])].astype(np.int64)
+            want["depth0_sum_max"] = [int(d.sum()), int(d.max())]
     (out / EXPECTED).write_text(json.dumps(want))
     print(f"exported {len(names)} episodes, {sum(want['lengths'])} frames to {out}")
 
@@ -65,6 +69,9 @@ def check(root: Path) -> int:
         "state max": (np.allclose(stats["max"], want["state_max"], rtol=1e-5, equal_nan=True), True),
         "state mean": (np.allclose(stats["mean"], want["state_mean"], rtol=1e-4, atol=1e-6, equal_nan=True), True),
     }
+    if "depth0_sum_max" in want:  # LeRobot 0.4.4 reads 16-bit PNG as int16: exact below 32.767 m
+        d = item["observation.images.depth"].long()
+        checks["depth of the first frame (mm: sum, max)"] = ([int(d.sum()), int(d.max())], want["depth0_sum_max"])
     bad = 0
     for name, (got, exp) in checks.items():
         ok = got == exp
