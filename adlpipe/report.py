@@ -194,7 +194,10 @@ def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> list[Path]:
         for m in ("fm_cnn", "dp_cnn"):
             if m in read:
                 ax.plot(read[m]["epoch"], read[m]["train_loss"], label=f"{m} train")
-                ax.plot(read[m]["epoch"], read[m]["test_loss"], "--", label=f"{m} test")
+                pts = [(e, v) for e, v in zip(read[m]["epoch"], read[m]["test_loss"], strict=False)
+                       if not math.isnan(v)]  # measured with each validation
+                if pts:
+                    ax.plot(*zip(*pts, strict=True), "--", label=f"{m} test")
         ax.set(xlabel="epoch", ylabel="loss (own objective)", yscale="log", title="Train and test loss, FM vs DP")
         ax.legend()
         save(fig, "loss_fm_vs_dp.png")

@@ -8,7 +8,8 @@ inference). A validation part of the train split (--val-fraction, stratified per
 Euler step, DP 16 DDPM steps, BC direct) is measured, and the best EMA weights are kept in best.pt beside the last
 ones in model.pt. A model whose best val px still fell by more than 2 % over the last fifth of training is marked
 "converged": false in metrics.json. Every model trains for the same number of optimiser steps (epochs x batches).
-Train, test and val figures are logged per epoch to a CSV that `dvc plots` reads. A checkpoint is written atomically
+The train loss of every epoch, and the test loss and val px of every --val-every epochs, go to a CSV that
+`dvc plots` reads. A checkpoint is written atomically
 after every epoch; re-running the same command resumes from it (after a kill, too), and each epoch's randomness
 comes from (seed, epoch), so a resumed run ends where an uninterrupted one does. Checkpoints hold only tensors and
 plain values: they load with torch.load(weights_only=True).
@@ -234,14 +235,17 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             n += len(act)
         total, n = all_sum([total, n], device, ranks)
         if ranks.main:
-            val_px = None
-            if val_obs is not None and ((epoch + 1) % val_every == 0 or epoch + 1 == epochs):
-                val_px = validation_px(ema.model, val_obs, val_px_target, norm, seed, precision)
+            val_px, test_loss = None, None
+            if (epoch + 1) % val_every == 0 or epoch + 1 == epochs:  # with validation: the test loss is for the
+                # curves, and every epoch it cost a tenth of the training time
+                test_loss = evaluate_loss(ema.model, test_loader, device, precision)
+                if val_obs is not None:
+                    val_px = validation_px(ema.model, val_obs, val_px_target, norm, seed, precision)
             row = {"epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "train_loss": total / n,
-                   "test_loss": evaluate_loss(ema.model, test_loader, device, precision), "val_px": val_px,
-                   "lr": sched.get_last_lr()[0], "seconds": time.time() - t0}
+                   "test_loss": test_loss, "val_px": val_px, "lr": sched.get_last_lr()[0],
+                   "seconds": time.time() - t0}
             history.append(row)
-            bar.set_postfix(train=f"{row['train_loss']:.4f}", test=f"{row['test_loss']:.4f}")
+            bar.set_postfix(train=f"{row['train_loss']:.4f}")
             if val_px is not None and val_px < best_px:  # written before last.pt: a resumed run never lacks it
                 best_px = val_px
                 save_atomic(inference_checkpoint(epoch + 1), out / "best.pt")
