@@ -105,3 +105,18 @@ def test_loader_workers_change_nothing_but_speed(four: tuple[Path, Path], tmp_pa
     hb = [r["train_loss"] for r in load_checkpoint(tmp_path / "b" / "model.pt")["history"]]
     assert ha == pytest.approx(hb, rel=1e-6) and len(set(ha)) == 3
     assert a["train_loss"] == pytest.approx(b["train_loss"], rel=1e-6)
+
+
+def test_first_frames_are_cached_only_while_they_fit(four: tuple[Path, Path]) -> None:
+    """A paper-size set (224 px) of 400 episodes would be 321 MB per worker: read every time instead."""
+    from adlpipe.dataset.loader import MAX_CACHED_BYTES, TrajectoryDataset
+
+    data, split = four
+    name = json.loads(split.read_text())["train"][0]
+    stats = {"min": [0.0] * 5, "max": [1.0] * 5}
+    assert 400 * 4 * 224 * 224 * 4 > MAX_CACHED_BYTES
+    assert not TrajectoryDataset(str(data), [name] * 400, stats, 224).cache
+    small = TrajectoryDataset(str(data), [name] * 10, stats, 224)
+    assert small.cache
+    small[0]
+    assert 0 in small._items  # kept after the first read
