@@ -142,12 +142,3 @@ def all_sum(values: list[float], device: torch.device, ranks: Ranks) -> list[flo
 def barrier(ranks: Ranks) -> None:
     if ranks.world > 1:
         dist.barrier()
-
-
-def broadcast_flag(flag: bool, device: torch.device, ranks: Ranks) -> bool:
-    """Rank 0's flag on every process (e.g. "training diverged": all ranks stop together)."""
-    if ranks.world == 1:
-        return flag
-    t = torch.tensor([int(flag)], device=device)
-    dist.broadcast(t, 0)
-    return bool(t.item())

@@ -19,7 +19,8 @@ parquet files as Hugging Face `datasets` Image structs ({bytes, path}), as LeRob
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -98,7 +99,6 @@ class Layout:
     depth: bool
     affordance: bool
     fps: int
-    image_keys: list[str] = field(default_factory=list)
 
     def features(self) -> dict[str, dict]:
         img = {"dtype": "image", "names": ["height", "width", "channels"]}
@@ -190,33 +190,22 @@ class Export:
         state = np.concatenate([ee, joints, gripper], 1)
         action = np.concatenate([ee[1:], ee[-1:]], 0)
         task = str(g.attrs["task"])
-        stats = {STATE: Moments(), ACTION: Moments(), RGB: Moments()}
+        stats = {STATE: Moments(), ACTION: Moments()}
         stats[STATE].add(state)
         stats[ACTION].add(action)
-        cols: dict[str, list] = {RGB: []}
-        for k in range(T):  # one frame decoded at a time; the episode's PNG bytes are what is held
-            rgb = fr["rgb"][k]
-            cols[RGB].append(png(rgb))
-            stats[RGB].add(rgb.reshape(-1, 3)[:: max(1, rgb.size // 3 // 4096)] / 255.0)
+        # one frame decoded at a time; the episode's PNG bytes are what is held
+        images = {RGB: ((fr["rgb"][k] for k in range(T)), 255.0)}
+        blank = np.zeros((self.layout.size, self.layout.size), np.float32)
         if self.layout.depth:
-            stats[DEPTH] = Moments()
-            cols[DEPTH] = []
             di = fr["depth_index"][()] if "depth_index" in fr else np.full(T, -1)
-            blank = np.zeros((self.layout.size, self.layout.size), np.uint16)
-            for k in range(T):
-                d = fr["depth"][int(di[k])] if di[k] >= 0 else blank
-                cols[DEPTH].append(png(d))
-                stats[DEPTH].add(d.reshape(-1, 1)[:: max(1, d.size // 4096)].astype(np.float64))
+            images[DEPTH] = (_synced(fr["depth"], di, blank.astype(np.uint16)), 1.0)
         if self.layout.affordance:
-            stats[AFFORDANCE] = Moments()
-            cols[AFFORDANCE] = []
-            ai = fr["affordance_index"][()]
-            blank = np.zeros((self.layout.size, self.layout.size), np.float32)
-            for k in range(T):
-                a = fr["affordance"][int(ai[k])] if ai[k] >= 0 else blank
-                a8 = (np.clip(np.nan_to_num(a), 0, 1) * 255).round().astype(np.uint8)
-                cols[AFFORDANCE].append(png(a8))
-                stats[AFFORDANCE].add(a8.reshape(-1, 1)[:: max(1, a8.size // 4096)] / 255.0)
+            maps = _synced(fr["affordance"], fr["affordance_index"][()], blank)
+            images[AFFORDANCE] = (((np.clip(np.nan_to_num(a), 0, 1) * 255).round().astype(np.uint8) for a in maps),
+                                  255.0)
+        cols: dict[str, list] = {}
+        for key, (frames, scale) in images.items():
+            cols[key], stats[key] = _image_column(frames, scale)
         writer = self._data_file()
         table = pa.table({
             **{k: pa.array(v, IMAGE_STRUCT) for k, v in cols.items()},
@@ -260,6 +249,21 @@ class Export:
         eps.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(pa.Table.from_pylist(self.episodes), eps)
         return info
+
+
+def _synced(images: h5py.Dataset, index: np.ndarray, blank: np.ndarray) -> Iterator[np.ndarray]:
+    """The image synced to each frame (index -1: none, the blank image instead)."""
+    return (images[int(i)] if i >= 0 else blank for i in index)
+
+
+def _image_column(frames: Iterable[np.ndarray], scale: float) -> tuple[list[dict], Moments]:
+    """PNG structs of the frames and their per-channel statistics (values / scale; at most ~4,096 pixels a frame)."""
+    column, moments = [], Moments()
+    for image in frames:
+        column.append(png(image))
+        channels = image.shape[2] if image.ndim == 3 else 1
+        moments.add(image.reshape(-1, channels)[:: max(1, image.size // channels // 4096)] / scale)
+    return column, moments
 
 
 def write_tasks(path: Path, tasks: list[str]) -> None:
