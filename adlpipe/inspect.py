@@ -103,16 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     with schema.open_dataset(args.data) as f:
         all_names = schema.episode_names(f)
         test = load_split(args.split or args.data.with_name("split.json"))["test"] or all_names
-        names = []
-        for e in args.episodes or ["0"]:
-            if e.isdigit():
-                if int(e) >= len(test):
-                    raise AdlError(f"episode index {e} out of range: the test split has {len(test)} episodes")
-                names.append(test[int(e)])
-            elif e in all_names:
-                names.append(e)
-            else:
-                raise AdlError(f"no episode {e!r} in {args.data}")
+        names = pick_episodes(args.episodes or ["0"], test, "the test split", all_names, args.data)
         eps = [schema.read_episode(f, n) for n in names]
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
                                                         policy.cfg.use_depth)) for n in names])
@@ -125,20 +116,27 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def record_dataset(args: object) -> int:
-    with schema.open_dataset(args.data) as f:
-        all_names = schema.episode_names(f)
+def pick_episodes(wanted: list[str], indexed: list[str], indexed_what: str, all_names: list[str],
+                  data: Path) -> list[str]:
+    """Episode names for --episodes: an episode's name, or an index into `indexed` (a digit string that is not
+    itself an episode's name)."""
     names = []
-    for e in args.episodes or []:
+    for e in wanted:
         if e.isdigit() and e not in all_names:
-            if int(e) >= len(all_names):
-                raise AdlError(f"episode index {e} out of range: {args.data} has {len(all_names)} episodes")
-            names.append(all_names[int(e)])
+            if int(e) >= len(indexed):
+                raise AdlError(f"episode index {e} out of range: {indexed_what} has {len(indexed)} episodes")
+            names.append(indexed[int(e)])
         elif e in all_names:
             names.append(e)
         else:
-            raise AdlError(f"no episode {e!r} in {args.data}")
-    names = names or all_names
+            raise AdlError(f"no episode {e!r} in {data}")
+    return names
+
+
+def record_dataset(args: object) -> int:
+    with schema.open_dataset(args.data) as f:
+        all_names = schema.episode_names(f)
+    names = pick_episodes(args.episodes or [], all_names, str(args.data), all_names, args.data) or all_names
     if not names:
         raise AdlError(f"{args.data}: no episodes to record")
     frames = write_dataset_recording(args.output, args.data, names)

@@ -28,7 +28,9 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / "tests")]
+sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "bench")]
+
+from ingest_scale import run, size_mb  # noqa: E402 - the fresh-process runner and folder size of the ingest bench
 
 INGEST = """
 import json, resource, sys, time
@@ -73,21 +75,6 @@ print(json.dumps({"episodes": n, "stats_s": stats_s, "epoch_s": epoch_s, "cached
                   "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   "child_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}))
 """
-
-
-def run(code: str, *args: object) -> dict:
-    proc = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True, cwd=REPO)
-    if proc.returncode:
-        raise SystemExit(proc.stderr[-2000:])
-    return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
-def size_mb(*paths: Path) -> float:
-    total = 0
-    for p in paths:
-        files = [q for q in p.rglob("*") if q.is_file()] if p.is_dir() else [p]
-        total += sum(q.stat().st_size for q in files)
-    return total / 1e6
 
 
 def _write(args: tuple[int, str]) -> None:
