@@ -119,11 +119,9 @@ def split_validation(tasks: dict[str, str], fraction: float, seed: int) -> tuple
 
 
 def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], val_names: list[str],
-             augment: bool, seed: int) -> tuple[dict, Dataset, Dataset, Dataset | None]:
+             aug: Augment | None, seed: int) -> tuple[dict, Dataset, Dataset, Dataset | None]:
     """(stats, train, test, val) datasets of the model's kind: windows of every frame (closed loop) or first frames.
-    Augmentation is for training only."""
-    with schema.open_dataset(data, names=[]) as f:
-        aug = Augment(int(f.attrs["image_size"])) if augment else None
+    aug: the training augmentation (validation and test never augment)."""
     if cfg.closed_loop:
         w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz)
         stats = compute_window_stats(data, train_names, w)
@@ -159,12 +157,13 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     if batch_size % ranks.world:
         raise AdlError(f"--batch-size {batch_size}: the global batch must split evenly over {ranks.world} processes")
     with schema.open_dataset(data, split["train"] + split["test"]) as f:
-        horizon = int(f.attrs["n_waypoints"])
+        horizon, stored_size = int(f.attrs["n_waypoints"]), int(f.attrs["image_size"])
         tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
     if horizon != cfg.horizon and not cfg.closed_loop:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
     train_names, val_names = split_validation(tasks, val_fraction, seed)
-    stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, augment, seed)
+    aug = Augment(stored_size) if augment else None
+    stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed)
     norm = Normalizer(stats)
     val_obs, val_px_target = None, None
     if val_ds is not None and ranks.main:
