@@ -5,10 +5,12 @@
 Both checkpoints of each model are evaluated: "best" (best.pt, the epoch with the lowest validation px) and "last"
 (model.pt). Per checkpoint, sampler and step count: mean per-waypoint error in pixels of the stored image (its size
 is stated; px224 rescales it to a 224 px image, the paper's input) and centimetres (3D), per task and overall;
-best-of-K error over K samples (how well the samples cover the demonstrated mode); inference milliseconds per sample
-(batch 1, encoder included, median of repeated runs). Writes the headline figures for `dvc metrics` (--metrics, a
-few values per model), every figure with per-task detail (--details), a CSV of error/latency vs steps for
-`dvc plots`, and a markdown table shaped like the paper's Table 1.
+best-of-K error over K samples (how well the samples cover the demonstrated mode); mode commitment on the
+two-mode tasks (the share of the K samples that lie nearer one of the scene's two demonstrated modes than their
+average; both modes are rebuilt in the simulator from the stored scene, adlpipe.sim.modes); inference milliseconds
+per sample (batch 1, encoder included, median of repeated runs). Writes the headline figures for `dvc metrics`
+(--metrics, a few values per model), every figure with per-task detail (--details), a CSV of error/latency vs steps
+for `dvc plots`, and a markdown table shaped like the paper's Table 1.
 """
 
 from __future__ import annotations
@@ -16,9 +18,12 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
 import sys
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .atomic import check_outputs, json_text, write_all_atomic
@@ -27,6 +32,7 @@ from .dataset import schema
 from .dataset.loader import Normalizer, TrajectoryDataset
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
+from .metrics import commitment, waypoint_errors
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import latency_ms, predict
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
@@ -43,20 +49,57 @@ def multimodal_tasks() -> set[str]:
     return {name for name, t in TASKS.items() if t.multimodal}
 
 
-def waypoint_errors(pred: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-sample mean per-waypoint error: (px, cm). pred/gt: (B, N, 5) unnormalised (u, v, x, y, z)."""
-    px = (pred[..., :2] - gt[..., :2]).norm(dim=-1).mean(-1)
-    cm = (pred[..., 2:] - gt[..., 2:]).norm(dim=-1).mean(-1) * 100.0
-    return px, cm
+def _modes_of(job: tuple) -> np.ndarray | None:
+    from .sim.modes import mode_paths
+
+    return mode_paths(*job)
+
+
+def reference_modes(data: Path, test: list[str], workers: int) -> dict[int, torch.Tensor]:
+    """Test index -> (demonstrated, other) mode paths (2, N, 3) for the scenes of two-mode tasks of the simulated
+    world that the simulator rebuilds; empty for other data (real robots' tasks: the metric is left out)."""
+    multimodal = multimodal_tasks()
+    jobs, where = [], []
+    with schema.open_dataset(data, test) as f:
+        for i, name in enumerate(test):
+            g = f[schema.EPISODES][name]
+            task = str(g.attrs["task"])
+            if task in multimodal:
+                jobs.append((task, [str(n) for n in g["objects"].attrs["names"]], g["objects"][()], g["traj3d"][()]))
+                where.append(i)
+    if not jobs:
+        return {}
+    with ProcessPoolExecutor(max_workers=max(1, min(workers, len(jobs)))) as pool:
+        paths = list(pool.map(_modes_of, jobs))
+    return {i: torch.from_numpy(p).float() for i, p in zip(where, paths, strict=True) if p is not None}
+
+
+def mode_figures(samples: list[torch.Tensor], modes: dict[int, torch.Tensor], tasks: list[str]) -> dict:
+    """Commitment of every sample (K per scene) on the scenes with rebuilt modes: overall, to the demonstrated mode
+    (of the committed ones), and per task. samples: K tensors (B, N, 5) unnormalised."""
+    if not modes:
+        return {"commitment": None, "to_demonstrated": None, "commitment_per_task": {}}
+    idx = sorted(modes)
+    ref = torch.stack([modes[i] for i in idx])
+    committed, to_demo = (torch.stack(v) for v in zip(*(commitment(s[idx, :, 2:], ref) for s in samples),
+                                                     strict=True))
+    per_task = {}
+    for t in sorted({tasks[i] for i in idx}):
+        cols = [k for k, i in enumerate(idx) if tasks[i] == t]
+        per_task[t] = float(committed[:, cols].float().mean())
+    n_committed = int(committed.sum())
+    return {"commitment": float(committed.float().mean()),
+            "to_demonstrated": float((committed & to_demo).sum()) / n_committed if n_committed else None,
+            "commitment_per_task": per_task}
 
 
 def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: list[int],
                    methods_by_kind: dict[str, list[str]], k: int, repeats: int, seed: int, image_px: int,
                    checkpoint: str = "model.pt", timings: dict | None = None,
-                   placement: Placement | None = None) -> dict:
+                   placement: Placement | None = None, modes: dict[int, torch.Tensor] | None = None) -> dict:
     """methods_by_kind: the samplers to evaluate for each objective family ("fm", "ddpm"); others use their
     default. image_px: the stored image size the pixel errors are in. timings: latencies already measured for the
-    same network (another checkpoint), reused."""
+    same network (another checkpoint), reused. modes: reference_modes of the test split."""
     placement = placement or Placement()
     policy, ck = load_policy(model_dir / checkpoint, placement)
     cfg = policy.cfg
@@ -75,12 +118,13 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
     for method in methods:
         for steps in steps_list:
             gen = placement.generator(seed)
-            pred = norm.unnormalize(predict(policy, obs, steps, method, gen, placement))
-            px, cm = waypoint_errors(pred, gt)
+            samples = [norm.unnormalize(predict(policy, obs, steps, method, gen, placement))]
+            px, cm = waypoint_errors(samples[0], gt)
             # best-of-K: the closest of K samples to the demonstration (for BC all K are the same prediction)
             best_px, best_cm = px.clone(), cm.clone()
             for _ in range(k - 1 if policy.family != "mse" else 0):
-                p2, c2 = waypoint_errors(norm.unnormalize(predict(policy, obs, steps, method, gen, placement)), gt)
+                samples.append(norm.unnormalize(predict(policy, obs, steps, method, gen, placement)))
+                p2, c2 = waypoint_errors(samples[-1], gt)
                 best_px, best_cm = torch.minimum(best_px, p2), torch.minimum(best_cm, c2)
             per_task = {t: {"px": float(px[idx].mean()), "cm": float(cm[idx].mean()), "n": len(idx)}
                         for t, idx in by_task.items()}
@@ -88,12 +132,14 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
             ms = (timings or {}).get(key, {}).get("ms")
             rows[key] = {
                 "model": cfg.model, "method": method, "steps": steps, "epoch": int(ck.get("epoch", 0)),
+                "default": key == DEFAULTS.get(cfg.model),
                 "evaluations": policy.objective.evaluations(steps, method), "image_px": image_px,
                 "input_px": cfg.image_size, "px": float(px.mean()),
                 "px224": float(px.mean()) * PAPER_IMAGE_PX / image_px, "cm": float(cm.mean()),
                 "px_multimodal": float(px[mm].mean()) if mm else None,
                 "cm_multimodal": float(cm[mm].mean()) if mm else None,
                 f"best_of_{k}_px": float(best_px.mean()), f"best_of_{k}_cm": float(best_cm.mean()),
+                **mode_figures(samples, modes or {}, tasks),
                 "ms": ms if ms is not None else latency_ms(policy, obs[:1], steps, method, repeats, placement),
                 "per_task": per_task,
             }
@@ -107,16 +153,17 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
              f"px224: the same error on a {PAPER_IMAGE_PX} px image. best: the checkpoint with the lowest validation "
              "px; last: the final one.", "",
              f"| method | checkpoint (epoch) | converged | sampler | steps | px | px224 | cm | ms | best-of-{k} px | "
-             "px (multimodal tasks) |",
-             "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "px (multimodal tasks) | mode commitment |",
+             "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for model, by_ck in results.items():
         conv = {True: "yes", False: "**no**", None: "?"}[training.get(model, {}).get("converged")]
         for ck, rows in by_ck.items():
             for r in rows.values():
                 mm = f"{r['px_multimodal']:.2f}" if r["px_multimodal"] is not None else "-"
+                com = f"{r['commitment']:.0%}" if r.get("commitment") is not None else "-"
                 lines.append(f"| {model} | {ck} ({r['epoch']}) | {conv} | {r['method']} | {r['steps']} | "
                              f"{r['px']:.2f} | {r['px224']:.2f} | {r['cm']:.2f} | {r['ms']:.1f} | "
-                             f"{r[f'best_of_{k}_px']:.2f} | {mm} |")
+                             f"{r[f'best_of_{k}_px']:.2f} | {mm} | {com} |")
     return "\n".join(lines) + "\n"
 
 
@@ -129,7 +176,8 @@ def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -
         default = best.get(DEFAULTS.get(model, "")) or min(best.values(), key=lambda r: r["steps"])
         h = {"px": round(default["px"], 3), "px224": round(default["px224"], 3), "ms": round(default["ms"], 2),
              "converged": training.get(model, {}).get("converged"),
-             "val_px_best": training.get(model, {}).get("val_px_best")}
+             "val_px_best": training.get(model, {}).get("val_px_best"),
+             "commitment": None if default.get("commitment") is None else round(default["commitment"], 3)}
         r16 = best.get(f"{default['method']}/16")
         if r16 is not None and default["steps"] != 16:
             h["px_16_steps"] = round(r16["px"], 3)
@@ -183,6 +231,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="every figure, per checkpoint, sampler, step count and task")
     p.add_argument("--plots", type=Path, default=Path("metrics/steps.csv"))
     p.add_argument("--table", type=Path, default=Path("reports/table1.md"))
+    p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1),
+                   help="processes rebuilding the two-mode scenes in the simulator (mode commitment)")
     add_device_args(p, compile_option=True)
     args = p.parse_args(argv)
     if args.threads:
@@ -194,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
         raise AdlError("the test split is empty: record more episodes per task")
     with schema.open_dataset(args.data, split["test"]) as f:
         image_px = int(f[schema.EPISODES][split["test"][0]]["rgb"].shape[0])
+    modes = reference_modes(args.data, split["test"], args.workers)
     results: dict[str, dict] = {}
     training: dict[str, dict] = {}
     methods = {"fm": args.fm_methods, "ddpm": args.dp_methods}
@@ -203,13 +254,14 @@ def main(argv: list[str] | None = None) -> int:
                 raise AdlError(f"{d}: no {name}; train it first (python -m adlpipe.train)")
         training[d.name] = _training_metrics(d)
         last = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
-                              args.seed, image_px, placement=placement)
+                              args.seed, image_px, placement=placement, modes=modes)
         t = training[d.name]
         if t and t.get("best_epoch") == t.get("epochs"):
             best = last  # the best validation epoch was the last: best.pt holds model.pt's weights
         else:
             best = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
-                                  args.seed, image_px, CHECKPOINTS["best"], timings=last, placement=placement)
+                                  args.seed, image_px, CHECKPOINTS["best"], timings=last, placement=placement,
+                                  modes=modes)
         results[d.name] = {"best": best, "last": last}
         top = min(best.values(), key=lambda r: r["px"])
         print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
@@ -217,6 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     title = "# Trajectory error and inference time on the test split\n\n"
     write_all_atomic({
         args.details: json_text({"n_test": len(split["test"]), "best_of": args.best_of, "training": training,
+                                 "mode_scenes": len(modes),
                                  "device": str(placement.device), "precision": placement.precision,
                                  "compiled": placement.compile, "models": results}),
         args.metrics: json_text(headline(results, training, len(split["test"]))),

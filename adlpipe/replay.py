@@ -112,7 +112,7 @@ def camera_rate(f: h5py.File, name: str) -> float:
 
 
 def steps_for(family: str, fm_steps: list[int], dp_steps: list[int]) -> list[int]:
-    return {"fm": fm_steps, "ddpm": dp_steps}.get(family, [1])
+    return {"fm": fm_steps, "meanflow": fm_steps, "ddpm": dp_steps}.get(family, [1])
 
 
 def label_of(model_dir: Path, method: str, family: str, steps: int) -> str:

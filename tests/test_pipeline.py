@@ -58,7 +58,7 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert set(headline) == {*MODELS, "n_test"}
     replay = json.loads((pipeline / "metrics" / "replay.json").read_text())
     n_values = sum(len(v) if isinstance(v, dict) else 1 for d in (headline, replay) for v in d.values())
-    assert n_values <= 40, n_values  # dvc metrics show stays readable
+    assert n_values <= 45, n_values  # dvc metrics show stays readable (43 with mode commitment per model)
     assert "px_16_steps" in headline["fm_cnn"] and "px_16_steps" not in headline["dp_cnn"]
     ev = json.loads((pipeline / "metrics" / "eval_details.json").read_text())
     assert sorted(ev["models"]) == sorted(MODELS)
@@ -66,6 +66,10 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert sorted(fm) == ["best", "last"]
     assert sorted(fm["best"]) == ["euler/1", "euler/16"] and fm["best"]["euler/16"]["evaluations"] == 16
     row = fm["last"]["euler/1"]
+    assert ev["mode_scenes"] == 7  # every two-mode test scene rebuilt in the simulator (one per task)
+    assert 0.0 <= row["commitment"] <= 1.0 and set(row["commitment_per_task"]) == {
+        "sweep the trash", "pass the water", "hang the towel", "put on the hat", "cover the food", "wipe the forearm",
+        "feed the human"}
     assert row["image_px"] == 32 and row["px224"] == pytest.approx(row["px"] * 224 / 32)
     assert sorted(ev["models"]["dp_cnn"]["last"]) == ["ddim/1", "ddim/16", "ddpm/1", "ddpm/16", "ddpm_trailing/1",
                                                       "ddpm_trailing/16"]
@@ -75,6 +79,7 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
         assert ev["training"][model]["optimizer_steps"] == ev["training"]["fm_cnn"]["optimizer_steps"]
     report = (pipeline / "reports" / "report.md").read_text()
     assert "## Success rate" in report and "FM-1 about as accurate as DP-16" in report
+    assert "## Mode commitment" in report and "| fm_cnn | 16 |" in report
     assert "## Closed loop vs open loop" in report and "| closed loop: fm_cnn/euler-1/Ta-8 |" in report
     assert "| open loop: fm_cnn/euler-1 (first frame -> whole trajectory) |" in report
     assert "FM better than BC (U-Net for both" in report and "FM-1 much faster than DP-16" in report

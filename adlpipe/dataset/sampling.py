@@ -19,10 +19,11 @@ from torch.utils.data import Dataset, DistributedSampler, Sampler
 
 def sample_noise(shape: tuple[int, ...], key: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
     """One sample's training noise (adlpipe.policy.objectives.Noise): eps of the target's shape, standard normal,
-    and two uniforms in [0, 1), from a generator seeded by key (seed, epoch, index)."""
+    and three uniforms in [0, 1), from a generator seeded by key (seed, epoch, index). (The first two are what
+    two were before MeanFlow's third: FM and DP train on the same noise as they did.)"""
     rng = np.random.default_rng([*key, 2])
     return (torch.from_numpy(rng.standard_normal(shape, dtype=np.float32)),
-            torch.from_numpy(rng.random(2, dtype=np.float32)))
+            torch.from_numpy(rng.random(3, dtype=np.float32)))
 
 
 class EpochItems(Protocol):

@@ -3,6 +3,8 @@
     fm_cnn           flow matching (clean-trajectory prediction), 1D conditional U-Net   (the paper's method)
     fm_cnn_velocity  flow matching with the paper's velocity target, same U-Net           (ablation)
     fm_transformer   flow matching (clean-trajectory prediction), transformer denoiser
+    mf_cnn           MeanFlow (average velocity, clean-trajectory output), same U-Net     (one step, mode-committing)
+    mf_transformer   MeanFlow, transformer denoiser
     dp_cnn           Diffusion Policy: DDPM, epsilon prediction, same U-Net
     bc_cnn           behaviour cloning, MSE, same U-Net fed a constant input (x = 0, t = 0)
     bc_transformer   behaviour cloning, MSE, transformer regressor                       (the paper's BC)
@@ -21,19 +23,21 @@ from ..dataset.loader import ACTION_DIM
 from .nets.resnet import ResNet18GN
 from .nets.transformer import TransformerDenoiser, TransformerRegressor
 from .nets.unet1d import ConditionalUnet1D
-from .objectives import DDPM, FlowMatching, MSERegression, Noise, draw_noise
+from .objectives import DDPM, FlowMatching, MeanFlow, MSERegression, Noise, draw_noise
 
 MODELS = {  # name -> (objective, network)
     "fm_cnn": ("fm", "unet"),
     "fm_cnn_velocity": ("fm_velocity", "unet"),
     "fm_transformer": ("fm", "transformer"),
+    "mf_cnn": ("meanflow", "unet"),
+    "mf_transformer": ("meanflow", "transformer"),
     "dp_cnn": ("ddpm", "unet"),
     "bc_cnn": ("mse", "unet_regressor"),
     "bc_transformer": ("mse", "transformer_regressor"),
 }
 # Each objective's default sampler and step count: what validation selects on, replay runs and the report compares.
-DEFAULT_METHOD = {"fm": "euler", "fm_velocity": "euler", "ddpm": "ddpm", "mse": "direct"}
-DEFAULT_STEPS = {"fm": 1, "fm_velocity": 1, "ddpm": 16, "mse": 1}
+DEFAULT_METHOD = {"fm": "euler", "fm_velocity": "euler", "meanflow": "euler", "ddpm": "ddpm", "mse": "direct"}
+DEFAULT_STEPS = {"fm": 1, "fm_velocity": 1, "meanflow": 1, "ddpm": 16, "mse": 1}
 
 
 @dataclass(frozen=True)
@@ -90,10 +94,10 @@ def preset(name: str, model: str, **overrides: object) -> ModelConfig:
     return replace(PRESETS[name], model=model, **overrides)
 
 
-def make_objective(kind: str) -> FlowMatching | DDPM | MSERegression:
+def make_objective(kind: str) -> FlowMatching | MeanFlow | DDPM | MSERegression:
     if kind == "fm_velocity":
         return FlowMatching("velocity")
-    return {"fm": FlowMatching, "ddpm": DDPM, "mse": MSERegression}[kind]()
+    return {"fm": FlowMatching, "meanflow": MeanFlow, "ddpm": DDPM, "mse": MSERegression}[kind]()
 
 
 # An observation: image channels (B, C, S, S), or (image channels, normalised state (B, state_dim)) in closed loop.
@@ -144,7 +148,7 @@ class Policy(nn.Module):
 
     @property
     def family(self) -> str:
-        """fm, ddpm or mse: which samplers apply."""
+        """fm, meanflow, ddpm or mse: which samplers apply."""
         return self.kind.split("_")[0]
 
     def condition(self, obs: Observation) -> torch.Tensor:

@@ -10,6 +10,9 @@ The flow time is fed to the sinusoidal embedding scaled by TIME_SCALE (t*100), t
 DDPM: 100 training steps, squaredcos_cap_v2 betas, epsilon prediction; sampled by DDPM (ancestral) or DDIM
 (eta=0). Timestep spacing "leading" (diffusers' default, what Diffusion Policy uses: 16 steps = 90, 84, ..., 0) or
 "trailing" (16 steps = 99, 93, ..., 5; the first step starts from pure noise, which few-step sampling needs).
+MeanFlow (Geng et al. 2025): the network gives the average velocity u(x_t, t, s) over [t, s], trained with the
+MeanFlow identity u = v + (s - t) du/dt (the total derivative along the flow, one forward-mode JVP); one step from
+t = 0 to s = 1 jumps straight to a sample. Clean-trajectory output as FM's "x1": u = (x1_hat - x_t) / (1 - t).
 MSE: behaviour cloning by direct regression of the trajectory.
 """
 
@@ -21,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
 Denoiser = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]  # (x, t, cond) -> same shape as x
 
@@ -30,8 +34,8 @@ T_EPS = 0.05  # the smallest 1 - t that x-prediction divides by
 
 @dataclass(frozen=True)
 class Noise:
-    """A batch's training randomness: eps (B, N, D) standard normal (FM's x0, DDPM's noise) and u (B, 2) uniform in
-    [0, 1) (the flow time or diffusion step; a second one for objectives that sample two times). Drawn per sample
+    """A batch's training randomness: eps (B, N, D) standard normal (FM's x0, DDPM's noise) and u (B, 3) uniform in
+    [0, 1) (the flow time or diffusion step; MeanFlow's second time and its choice of s = t). Drawn per sample
     from (seed, epoch, index) by adlpipe.dataset.sampling, the same on 1 or N processes."""
 
     eps: torch.Tensor
@@ -41,8 +45,9 @@ class Noise:
 def draw_noise(shape: tuple[int, ...], gen: torch.Generator | None = None,
                device: torch.device | str | None = None) -> Noise:
     """A batch's noise from one generator (tests, benches)."""
-    return Noise(torch.randn(shape, generator=gen, device=device),
-                 torch.rand(shape[0], 2, generator=gen, device=device))
+    eps = torch.randn(shape, generator=gen, device=device)
+    u = torch.rand(shape[0], 2, generator=gen, device=device)  # FM's and DDPM's stream as before the third one
+    return Noise(eps, torch.cat([u, torch.rand(shape[0], 1, generator=gen, device=device)], dim=1))
 
 
 def interpolate(x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -105,6 +110,55 @@ class FlowMatching:
     def evaluations(steps: int, method: str) -> int:
         """Network evaluations per sample."""
         return steps * {"euler": 1, "midpoint": 2, "rk4": 4}[method]
+
+
+class MeanFlow:
+    """One-step generation that commits to a mode: x_s = x_t + (s - t) u(x_t, t, s). The network sees both times,
+    (t, s - t) scaled by TIME_SCALE, one half of the sinusoidal time embedding each."""
+
+    TIME_SCALE = 100.0
+    methods = ("euler",)
+    EQUAL_TIMES = 0.75  # the share of samples trained with s = t (plain flow matching, u = v); see README
+    ADAPTIVE_C = 1e-3  # adaptive loss weight 1 / (error + c) (the paper's p = 1): large errors do not dominate
+
+    def average_velocity(self, net: Denoiser, x: torch.Tensor, t: torch.Tensor, s: torch.Tensor,
+                         cond: torch.Tensor) -> torch.Tensor:
+        times = torch.stack([t, s - t], dim=1) * self.TIME_SCALE
+        return velocity_from_x1(net(x, times, cond), x, t)
+
+    def times(self, noise: Noise) -> tuple[torch.Tensor, torch.Tensor]:
+        """(t, s): two uniform times in order; s = t for a share EQUAL_TIMES of the batch."""
+        a, b = noise.u[:, 0], noise.u[:, 1]
+        t, s = torch.minimum(a, b), torch.maximum(a, b)
+        return t, torch.where(noise.u[:, 2] < self.EQUAL_TIMES, t, s)
+
+    def loss(self, net: Denoiser, x1: torch.Tensor, cond: torch.Tensor, noise: Noise) -> torch.Tensor:
+        x0 = noise.eps
+        t, s = self.times(noise)
+        xt, v = interpolate(x0, x1, t), x1 - x0
+        # du/dt along the flow: tangent v for x_t and 1 for t, with s held (forward mode, one extra pass). The
+        # fused attention kernels have no forward-mode derivative: attention runs the plain math kernel here.
+        with sdpa_kernel(SDPBackend.MATH):
+            u, du_dt = torch.func.jvp(lambda x, tt: self.average_velocity(net, x, tt, s, cond), (xt, t),
+                                      (v, torch.ones_like(t)))
+        target = (v + (s - t).reshape(-1, 1, 1) * du_dt).detach()
+        err = (u - target).pow(2).mean(dim=(1, 2))
+        return (err / (err.detach() + self.ADAPTIVE_C)).mean()
+
+    @torch.no_grad()
+    def sample(self, net: Denoiser, cond: torch.Tensor, shape: tuple[int, ...], steps: int, method: str = "euler",
+               gen: torch.Generator | None = None) -> torch.Tensor:
+        if method not in self.methods:
+            raise ValueError(f"unknown MeanFlow sampler {method!r}; use one of {self.methods}")
+        x = torch.randn(shape, generator=gen, device=cond.device)
+        for i in range(steps):
+            t, s = (torch.full((shape[0],), k / steps, device=x.device) for k in (i, i + 1))
+            x = x + (1.0 / steps) * self.average_velocity(net, x, t, s, cond)
+        return x
+
+    @staticmethod
+    def evaluations(steps: int, method: str) -> int:
+        return steps
 
 
 def squaredcos_cap_v2(n: int, max_beta: float = 0.999) -> torch.Tensor:
