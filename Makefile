@@ -13,6 +13,8 @@ $(BIN)/.installed: pyproject.toml
 	# torch first, pinned: the CPU build on disk, never a multi-GB CUDA download
 	$(BIN)/pip install -q torch==2.13.0
 	$(BIN)/pip install -q -e ".[test]"
+	# Push-T's environment without its opencv-python requirement (adlpipe has opencv-python-headless)
+	$(BIN)/pip install -q --no-deps gym-pusht==0.1.8
 	touch $@
 
 install: $(BIN)/.installed

@@ -140,7 +140,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     if frames is not None:
         gripper = r.joint_names.index(tm.gripper_joint) if tm.gripper_joint in r.joint_names[:n_joints] else None
         frames.finish(r.t_img, t_end, tm.sync_tolerance_s, ee_t, ee_p, joint_t, joint_pos, gripper,
-                      f"{bag}: topic {tm.image}")
+                      f"{bag}: topic {tm.image}", r.series)
     ep = schema.Episode(
         task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=r.kind,
         duration_s=t_end, stamp0_ns=int(round(r.t_img * 1e9)), base_frame=tm.base_frame, camera_frame=camera_frame,

@@ -1,7 +1,12 @@
-"""Record demonstrations of the 10 ADL tasks in MuJoCo as ROS bags (one episode per bag).
+"""Record demonstrations of the 10 ADL tasks in MuJoCo as ROS bags (one episode per bag), or of Push-T.
 
     python -m adlpipe.record --episodes 3 --out data/bags            # 3 episodes of each task, ROS2 MCAP
     python -m adlpipe.record --format bag --image-format jpeg ...    # ROS1 .bag with CompressedImage
+    python -m adlpipe.record --world pusht --episodes 100 --out ...  # Push-T (gym-pusht), seeds 0..99
+
+Push-T bags carry the rendered image with a top-down camera model, the agent as end effector and joint state, the
+T block's pose in tf, and the state (agent x, y) and action (target x, y) topics of PUSHT_TOPICS; ingest them with
+`--config pipelines/pusht/topics.yaml`.
 """
 
 from __future__ import annotations
@@ -25,6 +30,9 @@ from .geometry import matrix_to_quat
 BASE_TIME_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z; episode k starts k*100 s later (deterministic bags)
 CAMERA_FRAME = "camera_color_optical_frame"
 MAX_ATTEMPTS = 8  # a demonstration whose success predicate still fails is re-sampled, as an operator would redo it
+# Push-T's topics: the camera has no depth, there is no affordance map or gripper; the policy's state and action.
+PUSHT_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint=None, ee_frame="agent", state="/pusht/state",
+                        action="/pusht/action")
 
 
 def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format: str, episode_index: int,
@@ -74,6 +82,12 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
             tn = ns(t)
             events.append((tn, 7, topics.tf, M.TF,
                            lambda tn=tn, p=p, q=q: f.tf(tn, [(topics.base_frame, topics.ee_frame, p, q)])))
+        for topic, names, stream in ((topics.state, st.state_names, st.states),
+                                     (topics.action, st.action_names, st.actions)):
+            for t, values in stream if topic else []:
+                tn = ns(t)
+                events.append((tn, 9, topic, M.JOINT_STATE, lambda tn=tn, v=values, n=names:
+                               f.joint_state(tn, n, np.asarray(v, float), np.zeros(len(n)))))
         if topics.joints:
             for t, qp, qv in st.joints:
                 tn = ns(t)
@@ -106,10 +120,24 @@ def _record_one(job: tuple) -> tuple[str, int, bool]:
     return str(path), attempt + 1, st.success
 
 
+def _record_pusht_one(job: tuple) -> tuple[str, int, bool]:
+    """Push-T: the demonstration from initial condition `seed` (the demonstrator is deterministic: no retries; a
+    demonstration that misses the goal is recorded and counted)."""
+    from .sim.pusht import record
+
+    idx, out, seed, fmt, image_format, size = job
+    st = record(seed + idx, size)
+    path = Path(out) / f"push_the_T_{idx:04d}{FORMATS[fmt]}"
+    write_episode_bag(st, path, fmt, image_format, "32FC1", episode_index=idx, topics=PUSHT_TOPICS)
+    return str(path), 1, st.success
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     from .sim.tasks import TASK_NAMES
 
     p = Parser("python -m adlpipe.record", __doc__)
+    p.add_argument("--world", choices=["adl", "pusht"], default="adl",
+                   help="adl: the MuJoCo ADL world (default); pusht: gym-pusht's Push-T (optional extra)")
     p.add_argument("--episodes", type=int_range(1, 100_000), default=3, help="episodes per task (default 3)")
     p.add_argument("--out", required=True, type=Path, help="output folder for the bags")
     p.add_argument("--tasks", nargs="+", default=TASK_NAMES, metavar="TASK",
@@ -120,7 +148,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="raw: sensor_msgs/Image rgb8 (default); jpeg/png: sensor_msgs/CompressedImage")
     p.add_argument("--depth-format", choices=["32FC1", "16UC1"], default="32FC1")
     p.add_argument("--size", type=int_range(16, 2048), default=224,
-                   help="camera width and height in pixels (default 224)")
+                   help="camera width and height in pixels (default 224; Push-T renders at this size too)")
     p.add_argument("--camera-hz", type=float_range(0.1, 120), default=15.0)
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument("--workers", type=int_range(1, 256), default=2)
@@ -136,11 +164,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    jobs = [(t, i, str(args.out), args.seed, args.format, args.image_format, args.depth_format, args.size,
-             args.camera_hz) for t in args.tasks for i in range(args.episodes)]
+    if args.world == "pusht":
+        from .sim.pusht import make_env
+
+        make_env().close()  # the optional extra's absence is one line here, not one per worker
+        worker, jobs = _record_pusht_one, [(i, str(args.out), args.seed, args.format, args.image_format, args.size)
+                                           for i in range(args.episodes)]
+    else:
+        worker = _record_one
+        jobs = [(t, i, str(args.out), args.seed, args.format, args.image_format, args.depth_format, args.size,
+                 args.camera_hz) for t in args.tasks for i in range(args.episodes)]
     failed = 0
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
-        for _path, _attempts, ok in tqdm(pool.map(_record_one, jobs), total=len(jobs), desc="record",
+        for _path, _attempts, ok in tqdm(pool.map(worker, jobs), total=len(jobs), desc="record",
                                          unit="ep", file=sys.stderr, disable=None):
             failed += not ok
     print(f"recorded {len(jobs)} episodes to {args.out} ({failed} without a successful demo)")

@@ -44,6 +44,7 @@ from .dataset.loader import (
     TrajectoryDataset,
     WindowDataset,
     Windows,
+    compute_action_stats,
     compute_stats,
     compute_window_stats,
 )
@@ -118,13 +119,25 @@ def split_validation(tasks: dict[str, str], fraction: float, seed: int) -> tuple
     return parts["train"], parts["test"]
 
 
+def stream_sizes(data: Path) -> tuple[int, int]:
+    """(state size, action size) of the first episode's per-frame streams (one line if it has none)."""
+    with schema.open_dataset(data) as f:
+        names = schema.episode_names(f)
+        fr = f[schema.EPISODES][names[0]].get("frames") if names else None
+        if fr is None or "state" not in fr or "action" not in fr:
+            raise AdlError(f"{data}: no state/action per frame; ingest with the topic map's state and action topics "
+                           "(--target action needs them)")
+        return int(fr["state"].shape[1]), int(fr["action"].shape[1])
+
+
 def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], val_names: list[str],
              aug: Augment | None, seed: int) -> tuple[dict, Dataset, Dataset, Dataset | None]:
     """(stats, train, test, val) datasets of the model's kind: windows of every frame (closed loop) or first frames.
     aug: the training augmentation (validation and test never augment)."""
     if cfg.closed_loop:
-        w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz)
-        stats = compute_window_stats(data, train_names, w)
+        w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz, cfg.target)
+        stats = (compute_action_stats(data, train_names) if cfg.target == "action"
+                 else compute_window_stats(data, train_names, w))
 
         def windows(names: list[str], **kw: object) -> WindowDataset:
             return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, **kw)
@@ -314,6 +327,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="closed loop: Tp, a multiple of 4 (default 16)")
     p.add_argument("--rate-hz", type=float_range(0.1, 1000), default=10.0,
                    help="closed loop: waypoint rate (default 10 Hz)")
+    p.add_argument("--target", choices=["ee", "action"], default="ee",
+                   help="closed loop: ee (end-effector waypoints, default) or action (the bags' action stream per "
+                   "frame, with their state stream as the state input: Push-T, joint-space policies)")
     add_device_args(p)
     args = p.parse_args(argv)
     device = resolve_device(args.device)
@@ -330,6 +346,9 @@ def main(argv: list[str] | None = None) -> int:
             raise AdlError(f"--action-steps {args.action_steps}: the U-Net needs a multiple of 4")
         horizon = args.action_steps
         overrides.update(n_obs=args.obs_frames, rate_hz=args.rate_hz, state_dim=3 * args.obs_frames)
+        if args.target == "action":
+            state_dim, action_dim = stream_sizes(args.data)
+            overrides.update(target="action", action_dim=action_dim, state_dim=state_dim * args.obs_frames)
     elif horizon % 4:  # the U-Net halves the sequence twice; the transformers take any length
         raise AdlError(f"{args.data}: {horizon} waypoints per trajectory; the models need a multiple of 4 "
                        "(re-ingest with --waypoints 32)")

@@ -53,6 +53,26 @@ class BagReadout:
     joint_pos: list[np.ndarray] = field(default_factory=list)
     joint_names: list[str] = field(default_factory=list)
     read: dict[str, int] = field(default_factory=dict)
+    series: dict[str, Series] = field(default_factory=dict)  # "state" / "action" -> what its topic carried
+
+
+@dataclass
+class Series:
+    """A JointState topic read as a vector stream: stamps (s), one row of positions per message, their names."""
+
+    names: list[str] = field(default_factory=list)
+    t: list[float] = field(default_factory=list)
+    rows: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, msg: object, where: str) -> None:
+        if not self.names:
+            self.names = [check_name(str(n), "joint", where) for n in msg.name]
+        pos = np.asarray(msg.position, float)
+        if len(pos) != len(self.names) or not np.isfinite(pos).all():
+            raise AdlError(f"{where}: field position has {len(pos)} values for {len(self.names)} names "
+                           "or is not finite")
+        self.t.append(stamp_s(msg))
+        self.rows.append(pos)
 
 
 def stamp_s(msg: object) -> float:
@@ -105,7 +125,8 @@ def check_types(bag: Path, topics: dict, tm: TopicMap) -> None:
     want = {tm.image: IMAGE_TYPES, tm.camera_info: {"sensor_msgs/msg/CameraInfo"},
             tm.tf: TF_TYPES, tm.tf_static: TF_TYPES,
             tm.depth: DEPTH_TYPES, tm.affordance: {"sensor_msgs/msg/Image"},
-            tm.joints: {"sensor_msgs/msg/JointState"}, tm.task: {"std_msgs/msg/String"}}
+            tm.joints: {"sensor_msgs/msg/JointState"}, tm.task: {"std_msgs/msg/String"},
+            tm.state: {"sensor_msgs/msg/JointState"}, tm.action: {"sensor_msgs/msg/JointState"}}
     for topic, types in want.items():
         if topic and topic in topics and topics[topic].msgtype not in types | {"?"}:
             expected = " or ".join(sorted(types))
@@ -160,7 +181,7 @@ def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None
         depth=state.depth.finish(state.t_img) if tm.depth in topics else None,
         affordance=state.aff.finish(state.t_img) if tm.affordance in topics else None,
         first_pose=state.first_pose, joint_t=state.joint_t, joint_pos=state.joint_pos,
-        joint_names=state.joint_names, read=read)
+        joint_names=state.joint_names, read=read, series=state.series)
 
 
 class _Streams:
@@ -180,6 +201,7 @@ class _Streams:
         self.joint_t: list[float] = []
         self.joint_pos: list[np.ndarray] = []
         self.joint_names: list[str] = []
+        self.series: dict[str, Series] = {}
 
     def where(self, topic: str) -> str:
         return f"{self.bag}: topic {topic}"
@@ -223,6 +245,9 @@ class _Streams:
                 self.joint_pos.append(pos)
         elif topic == tm.task and self.task is None:
             self.task = str(decode().data)
+        if topic in (tm.state, tm.action):  # may also be the joints topic
+            key = "state" if topic == tm.state else "action"
+            self.series.setdefault(key, Series()).add(decode(), self.where(topic))
 
     def _to_sink(self, topic: str, t: float, msg: object) -> None:
         where = self.where(topic)

@@ -18,6 +18,10 @@ class TopicMap:
     camera_info: str = "/camera/color/camera_info"
     affordance: str | None = "/adl/affordance"  # 32FC1 image; optional (null: no affordance map)
     joints: str | None = "/joint_states"
+    # A policy's own state and action streams (sensor_msgs/JointState, position field), kept per frame: joint-space
+    # policies and Push-T (adlpipe/sim/pusht.py). Optional: null, or absent from a bag, means none.
+    state: str | None = None
+    action: str | None = None
     task: str | None = "/adl/task"  # std_msgs/String; optional: --task names it for bags without one
     tf: str = "/tf"
     tf_static: str = "/tf_static"
@@ -73,7 +77,8 @@ class TopicMap:
         return [self.image, self.camera_info, self.tf]
 
     def optional_topics(self) -> list[str]:
-        return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static) if t]
+        return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static, self.state,
+                            self.action) if t]
 
 
 def _check_value(path: object, key: str, value: object, annotation: str) -> None:

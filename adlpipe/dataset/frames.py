@@ -5,6 +5,8 @@
     frames/ee_pos         (T, 3)      float32  end effector in base_frame, interpolated in tf at each frame's stamp
     frames/joint_pos      (T, J)      float32  the joint state nearest each frame within the sync tolerance (NaN: none)
     frames/gripper        (T,)        float32  the topic map's gripper joint at each frame (NaN: no such joint)
+    frames/state, frames/action (T, D) float32 the topic map's state / action stream nearest each frame within the
+                                               tolerance (NaN: none); attr names. Only when the bag has the topic.
     frames/depth          (D, S, S)   uint16   millimetres, 0 = no return; frames/depth_t (D,) its stamps
     frames/depth_index    (T,)        int32    the depth image nearest each frame within the tolerance, -1: none
     frames/affordance     (A, S, S)   float32  frames/affordance_t (A,); frames/affordance_index (T,): the map
@@ -61,9 +63,11 @@ class FrameWriter:
         self._append("affordance", t, a)
 
     def finish(self, t0: float, t_end: float, tolerance: float, ee_t: np.ndarray, ee_pos: np.ndarray,
-               joint_t: np.ndarray, joint_pos: np.ndarray, gripper: int | None, where: str) -> int:
+               joint_t: np.ndarray, joint_pos: np.ndarray, gripper: int | None, where: str,
+               series: dict | None = None) -> int:
         """Make stamps relative to the first image (t0, absolute s), drop frames after the path's end, and sync the
-        end effector, joints, depth and affordance to each kept frame. Returns the number of frames."""
+        end effector, joints, state and action (series: name -> Series), depth and affordance to each kept frame.
+        Returns the number of frames."""
         t = np.asarray(self.t["rgb"], float) - t0
         if np.any(np.diff(t) < 0):
             raise AdlError(f"{where}: image header stamps go backwards; frames cannot be ordered")
@@ -77,6 +81,11 @@ class FrameWriter:
         grip = (_nearest_rows(t, joint_t, joint_pos[:, [gripper]], tolerance)[:, 0] if gripper is not None
                 else np.full(keep, np.nan))
         self.g.create_dataset("gripper", data=grip.astype(np.float32))
+        for key, s in (series or {}).items():
+            rows = np.asarray(s.rows, float).reshape(len(s.t), len(s.names))
+            d = self.g.create_dataset(key, data=_nearest_rows(t, np.asarray(s.t) - t0, rows, tolerance)
+                                      .astype(np.float32))
+            d.attrs["names"] = list(s.names)
         for key in ("depth", "affordance"):
             ts = np.asarray(self.t[key], float) - t0
             self.g.create_dataset(f"{key}_t", data=ts)

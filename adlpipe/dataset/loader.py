@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from ..errors import AdlError
 from ..geometry import project
 from . import schema
 from .frames import metres_from_mm
@@ -218,11 +219,30 @@ MAX_CACHED_WINDOWS = 2000  # ~0.3 GB of 8 x 64 x 64 float32 windows at most
 @dataclass(frozen=True)
 class Windows:
     """The closed-loop sample: observation frames t-n_obs+1..t, and the end effector's next `horizon` waypoints
-    at `rate_hz` (t + 1/rate .. t + horizon/rate)."""
+    at `rate_hz` (t + 1/rate .. t + horizon/rate); with target "action", the recorded actions of frames
+    t..t+horizon-1 instead (absolute, the last repeated after the end) and the recorded state as the state input."""
 
     n_obs: int = 2
     horizon: int = 16
     rate_hz: float = 10.0
+    target: str = "ee"
+
+
+def compute_action_stats(index: str | Path, names: list[str]) -> dict[str, list[float]]:
+    """Min/max of the recorded actions (min/max) and states (state_min/state_max) over every frame of `names`."""
+    files = _EpisodeFiles(str(index), list(names))
+    acts, states = [], []
+    for n in names:
+        fr = files.group(n)["frames"]
+        if "action" not in fr or "state" not in fr:
+            raise AdlError(f"{files.files[n]}: episode {n} has no state/action per frame; ingest the bags with "
+                           "the topic map's state and action topics")
+        acts.append(np.nanmin(fr["action"][()], 0)), acts.append(np.nanmax(fr["action"][()], 0))
+        states.append(np.nanmin(fr["state"][()], 0)), states.append(np.nanmax(fr["state"][()], 0))
+    (lo, hi), (slo, shi) = (np.min(acts, 0), np.max(acts, 0)), (np.min(states, 0), np.max(states, 0))
+    pad, spad = np.maximum((hi - lo) * 0.05, 1e-3), np.maximum((shi - slo) * 0.05, 1e-3)
+    return {"min": (lo - pad).tolist(), "max": (hi + pad).tolist(), "state_min": (slo - spad).tolist(),
+            "state_max": (shi + spad).tolist()}
 
 
 class WindowDataset(Dataset):
@@ -275,6 +295,8 @@ class WindowDataset(Dataset):
             return self._metas[e]
         g = self.files.group(self.names[e])
         fr = g["frames"]
+        if self.w.target == "action":
+            return self._action_meta(e, fr)
         m = {"t": fr["t"][()], "frame_ee": fr["ee_pos"][()].astype(np.float32), "ee_t": g["series/ee_t"][()],
              "ee_pos": g["series/ee_pos"][()], "K": g["K"][()], "T": g["T_base_camera"][()],
              "aff_index": fr["affordance_index"][()], "aff": {},
@@ -310,12 +332,24 @@ class WindowDataset(Dataset):
         if self.use_depth:
             chans.append(np.stack([self._depth(m, g, i) for i in idx])[:, None])
         obs = np.concatenate(chans, axis=1).reshape(-1, self.image_size, self.image_size)
+        if self.w.target == "action":
+            ahead = np.minimum(np.arange(k, k + self.w.horizon), len(m["action"]) - 1)
+            return obs, m["state"][idx], m["action"][ahead]
         t = float(m["t"][k]) + np.arange(1, self.w.horizon + 1) / self.w.rate_hz
         xyz = np.stack([np.interp(t, m["ee_t"], m["ee_pos"][:, d]) for d in range(3)], 1)  # clamped: last pose
         state = m["frame_ee"][idx]
         now = m["frame_ee"][k].astype(float)
         uv = project(xyz, m["K"], m["T"]) - project(now[None], m["K"], m["T"])
         return obs, state, np.concatenate([uv, xyz - now], 1).astype(np.float32)
+
+    def _action_meta(self, e: int, fr: h5py.Group) -> dict:
+        m = {"state": fr["state"][()].astype(np.float32), "action": fr["action"][()].astype(np.float32),
+             "aff_index": fr["affordance_index"][()], "aff": {},
+             "depth_index": fr["depth_index"][()] if self.use_depth else None}
+        if len(self._metas) >= 256:
+            self._metas.pop(next(iter(self._metas)))
+        self._metas[e] = m
+        return m
 
     def _depth(self, m: dict, g: h5py.Group, k: int) -> np.ndarray:
         d = int(m["depth_index"][k])
@@ -345,6 +379,7 @@ class WindowDataset(Dataset):
 
 
 def normalize_state(state: np.ndarray, stats: dict) -> torch.Tensor:
-    """End-effector positions (To, 3), metres -> [-1, 1] with the state statistics, flattened."""
+    """End-effector positions (To, 3), metres (or the recorded state, (To, D)) -> [-1, 1] with the state
+    statistics, flattened."""
     lo, hi = np.asarray(stats["state_min"]), np.asarray(stats["state_max"])
     return torch.from_numpy((2 * (state - lo) / (hi - lo) - 1).astype(np.float32).reshape(-1))

@@ -58,6 +58,9 @@ class ModelConfig:
     state_dim: int = 0  # closed loop: the end effector's position at each observation frame (3 * n_obs)
     rate_hz: float = 0.0  # 0: first frame -> whole trajectory (the seed's ADL setting); > 0: next `horizon`
     #                       waypoints at this rate from the current frame (closed loop, adlpipe.dataset.loader.Windows)
+    action_dim: int = ACTION_DIM  # waypoint (u, v, x, y, z); with target "action" the recorded action's size
+    target: str = "ee"  # closed loop: "ee" (end-effector waypoints) or "action" (the bag's action stream, with its
+    #                     state stream as the state input: Push-T, joint-space policies)
 
     @property
     def in_channels(self) -> int:
@@ -108,12 +111,12 @@ class UnetRegressor(nn.Module):
     """The conditional U-Net as a regressor: fed a constant input (zeros) at time 0, it maps the observation feature
     to the trajectory through exactly the layers that FM-CNN and DP-CNN use."""
 
-    def __init__(self, unet: ConditionalUnet1D, horizon: int) -> None:
+    def __init__(self, unet: ConditionalUnet1D, horizon: int, action_dim: int) -> None:
         super().__init__()
-        self.unet, self.horizon = unet, horizon
+        self.unet, self.horizon, self.action_dim = unet, horizon, action_dim
 
     def forward(self, cond: torch.Tensor) -> torch.Tensor:
-        x = cond.new_zeros(cond.shape[0], self.horizon, ACTION_DIM)
+        x = cond.new_zeros(cond.shape[0], self.horizon, self.action_dim)
         return self.unet(x, cond.new_zeros(cond.shape[0]), cond)
 
 
@@ -130,13 +133,15 @@ class Policy(nn.Module):
         self.encoder = ResNet18GN(cfg.in_channels, cfg.obs_dim, cfg.encoder_width)
         cond = cfg.obs_dim + cfg.state_dim
         if net in ("unet", "unet_regressor"):
-            self.net = ConditionalUnet1D(ACTION_DIM, cond, cfg.down_dims, cfg.kernel, cfg.groups)
+            self.net = ConditionalUnet1D(cfg.action_dim, cond, cfg.down_dims, cfg.kernel, cfg.groups)
             if net == "unet_regressor":
-                self.net = UnetRegressor(self.net, cfg.horizon)
+                self.net = UnetRegressor(self.net, cfg.horizon, cfg.action_dim)
         elif net == "transformer":
-            self.net = TransformerDenoiser(ACTION_DIM, cond, cfg.horizon, cfg.d_model, cfg.n_layers, cfg.n_heads)
+            self.net = TransformerDenoiser(cfg.action_dim, cond, cfg.horizon, cfg.d_model, cfg.n_layers,
+                                           cfg.n_heads)
         else:
-            self.net = TransformerRegressor(ACTION_DIM, cond, cfg.horizon, cfg.d_model, cfg.n_layers, cfg.n_heads)
+            self.net = TransformerRegressor(cfg.action_dim, cond, cfg.horizon, cfg.d_model, cfg.n_layers,
+                                            cfg.n_heads)
 
     @property
     def default_method(self) -> str:
@@ -178,6 +183,6 @@ class Policy(nn.Module):
     def predict(self, obs: Observation, steps: int = 1, method: str | None = None,
                 gen: torch.Generator | None = None) -> torch.Tensor:
         cond = self.condition(obs)
-        shape = (cond.shape[0], self.cfg.horizon, ACTION_DIM)
+        shape = (cond.shape[0], self.cfg.horizon, self.cfg.action_dim)
         out = self.objective.sample(self.net, cond, shape, steps, method or self.default_method, gen)
         return out.float()  # under bf16 autocast the last network output is bfloat16

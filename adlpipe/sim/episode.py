@@ -124,6 +124,11 @@ class Streams:
     joint_names: list[str] = field(default_factory=lambda: ARM_JOINTS + FINGER_JOINTS)
     success: bool = False
     duration: float = 0.0
+    # A policy's own state and action streams (joint-space and Push-T data): (t, values), named per dimension
+    states: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    actions: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    state_names: list[str] = field(default_factory=list)
+    action_names: list[str] = field(default_factory=list)
 
 
 def camera_intrinsics(model: mujoco.MjModel, width: int, height: int) -> np.ndarray:

@@ -1,0 +1,104 @@
+"""Push-T: gym-pusht's environment, the scripted demonstrator, its bags through record and ingest (state and action
+topics), training on the action stream and the closed-loop benchmark."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from conftest import one_line_error, run_module
+
+from adlpipe.dataset import schema
+from adlpipe.geometry import project
+
+
+def test_the_demonstrator_pushes_the_t_onto_the_goal() -> None:
+    """Every seeded initial condition ends above gym-pusht's 0.95 coverage within its 300 steps (measured on seeds
+    0-9: 0.95-0.98 in 129-249 steps)."""
+    from adlpipe.sim.pusht import demonstrate, make_env
+
+    env = make_env()
+    for seed in (0, 1, 2):
+        steps = list(demonstrate(env, seed))
+        assert steps[-1].info["is_success"] and steps[-1].info["coverage"] > 0.95, seed
+        assert len(steps) < 300
+        assert steps[0].info["coverage"] < 0.9  # it had work to do
+
+
+@pytest.fixture(scope="module")
+def pusht_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("pusht")
+    run_module("record", "--world", "pusht", "--episodes", "4", "--size", "48", "--out", root / "bags", check=True)
+    run_module("ingest", *sorted((root / "bags").glob("*.mcap")), "-o", root / "pusht.h5", "--size", "48",
+               "--config", Path(__file__).parents[1] / "pipelines" / "pusht" / "topics.yaml", check=True)
+    run_module("split", root / "pusht.h5", "-o", root / "split.json", "--test-fraction", "0.25", check=True)
+    return root
+
+
+def test_pusht_bags_carry_state_and_action_per_frame(pusht_data: Path) -> None:
+    with schema.open_dataset(pusht_data / "pusht.h5") as f:
+        names = schema.episode_names(f)
+        assert len(names) == 4
+        for n in names:
+            g = f[schema.EPISODES][n]
+            fr = g["frames"]
+            assert g.attrs["task"] == "push the T" and list(g["objects"].attrs["names"]) == ["tee"]
+            assert fr["state"].shape == (len(fr["t"]), 2) and fr["action"].shape == (len(fr["t"]), 2)
+            assert list(fr["action"].attrs["names"]) == ["target_x", "target_y"]
+            assert np.isfinite(fr["state"][()]).all() and np.isfinite(fr["action"][()]).all()
+            assert np.allclose(np.diff(fr["t"][()]), 0.1, atol=1e-3)  # the 10 Hz control rate
+            # the agent is the end effector (1 px = 1 mm) and the camera model maps it to its rendered pixel
+            assert np.allclose(fr["ee_pos"][:, :2] * 1000.0, fr["state"][()], atol=1e-3)
+            uv = project(np.c_[fr["state"][()] / 1000.0, np.zeros(len(fr["t"]))], g["K"][()], g["T_base_camera"][()])
+            assert np.allclose(uv, (fr["state"][()] + 0.5) * 48 / 512 - 0.5, atol=0.1)
+            # the action leads the state: the agent moves towards where it was sent
+            step = fr["state"][1:] - fr["state"][:-1]
+            towards = fr["action"][:-1] - fr["state"][:-1]
+            moving = np.linalg.norm(step, axis=1) > 2
+            norms = np.linalg.norm(step, axis=1) * np.linalg.norm(towards, axis=1)
+            cos = (step * towards).sum(1)[moving] / norms[moving]
+            assert np.median(cos) > 0.8
+
+
+def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path) -> None:
+    for model in ("fm_cnn", "bc_cnn"):
+        run_module("train", "--model", model, "--closed-loop", "--target", "action", "--data",
+                   pusht_data / "pusht.h5", "--split", pusht_data / "split.json", "--out", tmp_path / model,
+                   "--epochs", "2", "--image-size", "32", "--val-fraction", "0.34", check=True)
+    ck = __import__("torch").load(tmp_path / "fm_cnn" / "model.pt", weights_only=True)
+    assert ck["config"]["action_dim"] == 2 and ck["config"]["state_dim"] == 4 and ck["config"]["target"] == "action"
+    out = tmp_path / "out"
+    run_module("benchmark", "--models", tmp_path / "fm_cnn", tmp_path / "bc_cnn", "--steps", "2", "--episodes", "2",
+               "--metrics", out / "m.json", "--details", out / "d.json", "--table", out / "t.md", check=True)
+    details = json.loads((out / "d.json").read_text())
+    rows = {(r["model"], r["steps"]): r for r in details["results"]}
+    assert set(rows) == {("fm_cnn", 2), ("bc_cnn", 1)}
+    for r in rows.values():
+        eps = r["per_episode"]["last"]
+        assert [e["seed"] for e in eps] == [100_000, 100_001]
+        assert all(0.0 <= e["coverage"] <= 1.0 for e in eps)
+    assert "| fm_cnn | 2 |" in (out / "t.md").read_text()
+    # a folder without a trained policy: one line
+    proc = run_module("benchmark", "--models", pusht_data, "--episodes", "1", "--metrics", out / "x.json",
+                      "--details", out / "y.json", "--table", out / "z.md")
+    assert proc.returncode != 0 and "no best.pt; train it first" in one_line_error(proc)
+
+
+def test_ingest_without_the_state_topic_has_no_state(pusht_data: Path, tmp_path: Path) -> None:
+    """state/action are optional topics: a map without them ingests the same bags without the streams, and
+    training on actions then says what is missing in one line."""
+    bag = sorted((pusht_data / "bags").glob("*.mcap"))[0]
+    cfg = tmp_path / "topics.yaml"
+    cfg.write_text("depth: null\naffordance: null\ngripper_joint: null\nee_frame: agent\n")
+    run_module("ingest", bag, "-o", tmp_path / "d.h5", "--size", "48", "--config", cfg, check=True)
+    with h5py.File(tmp_path / "d.h5") as f:
+        name = schema.episode_names(f)[0]
+    with schema.open_dataset(tmp_path / "d.h5") as f:
+        assert "state" not in f[schema.EPISODES][name]["frames"]
+    (tmp_path / "split.json").write_text(json.dumps({"train": [name], "test": []}))
+    proc = run_module("train", "--model", "fm_cnn", "--closed-loop", "--target", "action", "--data",
+                      tmp_path / "d.h5", "--split", tmp_path / "split.json", "--out", tmp_path / "m", "--epochs", "1")
+    assert proc.returncode == 2 and "no state/action per frame" in one_line_error(proc)
