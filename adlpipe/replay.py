@@ -190,6 +190,9 @@ def main(argv: list[str] | None = None) -> int:
             if not policy.cfg.closed_loop:
                 raise AdlError(f"{d}: trained on first frames only; closed loop needs a model trained with "
                                "python -m adlpipe.train --closed-loop")
+            if policy.cfg.target != "ee":
+                raise AdlError(f"{d}: predicts the bags' action stream, not end-effector waypoints; run it with "
+                               "python -m adlpipe.benchmark (Push-T)")
             for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
                 for ta in args.closed_loop:
                     if ta > policy.cfg.horizon:
