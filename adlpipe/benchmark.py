@@ -7,8 +7,9 @@ Each model (trained with `train --closed-loop --target action` on Push-T bags) r
 seed0, seed0+1, ... (none of them a training demonstration's: record uses 0..N-1, the default seed0 is 100,000),
 predicting Tp actions from To frames and agent positions, executing Ta, re-planning, for at most 300 steps. Per
 model, checkpoint (best validation / last) and step count: the mean of each episode's highest coverage of the goal
-(the seed's score), the success rate (coverage above 0.95), milliseconds per plan. Writes --metrics (headline),
---details (per episode) and --table (the Table 2 replica).
+(the seed's score), the success rate (coverage above 0.95), milliseconds per plan; beside them, from the same
+initial conditions, the scripted demonstrator and the agent holding still (the coverage an episode starts with).
+Writes --metrics (headline), --details (per episode) and --table (the Table 2 replica).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from .policy.inference import predict
 from .runtime import Placement
 
 FIRST_SEED = 100_000
+REFERENCES = ("demonstrator", "no action")
 
 
 def _episode(job: tuple) -> tuple[str, str, int, int, float, bool, float]:
@@ -55,6 +57,25 @@ def _episode(job: tuple) -> tuple[str, str, int, int, float, bool, float]:
     return str(model_dir), checkpoint, steps, seed, coverage, ok, 1000.0 * float(np.median(seconds))
 
 
+def _reference(job: tuple) -> tuple[str, int, float, bool]:
+    """The demonstrator, and the agent holding still (the coverage an episode starts with), from one initial
+    condition: the scale a policy's score sits on."""
+    from .sim.pusht import demonstrate, make_env
+
+    kind, seed = job
+    env = make_env()
+    try:
+        if kind == "demonstrator":
+            steps = list(demonstrate(env, seed))
+            return kind, seed, max(s.info["coverage"] for s in steps), bool(steps[-1].info["is_success"])
+        env.reset(seed=seed)
+        u = env.unwrapped
+        _obs, _r, done, _t, info = env.step(np.asarray(u.agent.position, np.float32))
+        return kind, seed, float(info["coverage"]), bool(done)
+    finally:
+        env.close()
+
+
 def check_model(d: Path) -> dict:
     for name in CHECKPOINTS.values():
         if not (d / name).exists():
@@ -66,14 +87,16 @@ def check_model(d: Path) -> dict:
     return cfg
 
 
-def table(rows: dict, episodes: int, execute: int) -> str:
+def table(rows: dict, refs: dict, episodes: int, execute: int, first_seed: int) -> str:
     lines = ["# Push-T, closed loop (the seed's Table 2 setting)", "",
-             f"{episodes} seeded initial conditions (seeds {FIRST_SEED}..), Ta = {execute}, at most 300 steps. "
+             f"{episodes} seeded initial conditions (seeds {first_seed}..), Ta = {execute}, at most 300 steps. "
              "Score: the mean over episodes of the highest goal coverage reached; success: coverage above 0.95. "
              "best: the checkpoint with the lowest validation error; last: the final one (the seed reports the max "
              "and the average of its last checkpoints).", "",
              "| model | steps | score best / last | success best / last | ms per plan |",
              "| --- | ---: | ---: | ---: | ---: |"]
+    for name, r in refs.items():
+        lines.append(f"| {name} (reference) | | {r['score']:.3f} | {r['success']:.0%} | |")
     for (model, steps), r in rows.items():
         lines.append(f"| {model} | {steps} | {r['best']['score']:.3f} / {r['last']['score']:.3f} | "
                      f"{r['best']['success']:.0%} / {r['last']['success']:.0%} | {r['last']['ms']:.1f} |")
@@ -104,10 +127,16 @@ def main(argv: list[str] | None = None) -> int:
             jobs += [(str(d), ck, steps, args.seed + i, args.execute) for ck in CHECKPOINTS
                      for i in range(args.episodes)]
     per: dict = {}
+    ref_eps: dict = {}
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         for model_dir, ck, steps, seed, coverage, ok, ms in pool.map(_episode, jobs):
             per.setdefault((Path(model_dir).name, steps), {}).setdefault(ck, []).append(
                 {"seed": seed, "coverage": coverage, "success": ok, "ms": ms})
+        ref_jobs = [(kind, args.seed + i) for kind in REFERENCES for i in range(args.episodes)]
+        for kind, seed, coverage, ok in pool.map(_reference, ref_jobs):
+            ref_eps.setdefault(kind, []).append({"seed": seed, "coverage": coverage, "success": ok})
+    refs = {k: {"score": float(np.mean([e["coverage"] for e in eps])),
+                "success": float(np.mean([e["success"] for e in eps]))} for k, eps in ref_eps.items()}
     rows = {key: {ck: {"score": float(np.mean([e["coverage"] for e in eps])),
                        "success": float(np.mean([e["success"] for e in eps])),
                        "ms": float(np.median([e["ms"] for e in eps]))} for ck, eps in by_ck.items()}
@@ -118,8 +147,9 @@ def main(argv: list[str] | None = None) -> int:
         args.metrics: json_text(headline),
         args.details: json_text({"episodes": args.episodes, "first_seed": args.seed, "execute": args.execute,
                                  "results": [{"model": m, "steps": s, **r, "per_episode": per[(m, s)]}
-                                             for (m, s), r in rows.items()]}),
-        args.table: table(rows, args.episodes, args.execute)})
+                                             for (m, s), r in rows.items()],
+                                 "references": {k: {**refs[k], "per_episode": ref_eps[k]} for k in refs}}),
+        args.table: table(rows, refs, args.episodes, args.execute, args.seed)})
     for (m, s), r in rows.items():
         print(f"{m} {s} steps: score {r['best']['score']:.3f} / {r['last']['score']:.3f} (best / last)")
     return 0

@@ -81,6 +81,9 @@ def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path
         assert [e["seed"] for e in eps] == [100_000, 100_001]
         assert all(0.0 <= e["coverage"] <= 1.0 for e in eps)
     assert "| fm_cnn | 2 |" in (out / "t.md").read_text()
+    refs = details["references"]
+    assert refs["demonstrator"]["success"] == 1.0 and refs["demonstrator"]["score"] > 0.95
+    assert refs["no action"]["success"] == 0.0 and refs["no action"]["score"] < 0.9
     # a folder without a trained policy: one line
     proc = run_module("benchmark", "--models", pusht_data, "--episodes", "1", "--metrics", out / "x.json",
                       "--details", out / "y.json", "--table", out / "z.md")
