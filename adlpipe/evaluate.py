@@ -103,6 +103,9 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
     placement = placement or Placement()
     policy, ck = load_policy(model_dir / checkpoint, placement)
     cfg = policy.cfg
+    if cfg.closed_loop:
+        raise AdlError(f"{model_dir}: a closed-loop model; evaluate measures first-frame ones (closed loop: "
+                       "python -m adlpipe.replay --closed-loop, or python -m adlpipe.benchmark for Push-T)")
     ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth)
     norm = Normalizer(ck["stats"])
     obs = torch.stack([ds[i][0] for i in range(len(ds))])

@@ -99,6 +99,9 @@ def main(argv: list[str] | None = None) -> int:
         return record_dataset(args)
     placement = Placement.from_args(args)
     policy, ck = load_policy(args.model / CHECKPOINTS[args.checkpoint], placement)
+    if policy.cfg.closed_loop:
+        raise AdlError(f"{args.model}: a closed-loop model; inspect shows first-frame predictions (the dataset "
+                       "itself: --dataset)")
     norm = Normalizer(ck["stats"])
     with schema.open_dataset(args.data) as f:
         all_names = schema.episode_names(f)

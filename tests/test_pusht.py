@@ -84,6 +84,12 @@ def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path
     refs = details["references"]
     assert refs["demonstrator"]["success"] == 1.0 and refs["demonstrator"]["score"] > 0.95
     assert refs["no action"]["success"] == 0.0 and refs["no action"]["score"] < 0.9
+    # the first-frame stages refuse a closed-loop policy in one line
+    for stage, args in (("evaluate", ["--models", tmp_path / "fm_cnn", "--metrics", out / "e.json", "--details",
+                                      out / "ed.json", "--plots", out / "s.csv", "--table", out / "t1.md"]),
+                        ("inspect", ["--model", tmp_path / "fm_cnn", "-o", out / "p.rrd"])):
+        proc = run_module(stage, *args, "--data", pusht_data / "pusht.h5", "--split", pusht_data / "split.json")
+        assert proc.returncode == 2 and "a closed-loop model" in one_line_error(proc), stage
     # a folder without a trained policy: one line
     proc = run_module("benchmark", "--models", pusht_data, "--episodes", "1", "--metrics", out / "x.json",
                       "--details", out / "y.json", "--table", out / "z.md")
