@@ -17,6 +17,7 @@ from __future__ import annotations
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -34,13 +35,19 @@ FIRST_SEED = 100_000
 REFERENCES = ("demonstrator", "no action")
 
 
+@lru_cache(maxsize=8)
+def _policy(path: str) -> tuple:
+    """A worker process's policy, loaded once for all the episodes it runs."""
+    return load_policy(Path(path), Placement())
+
+
 def _episode(job: tuple) -> tuple[str, str, int, int, float, bool, float]:
     from .sim.pusht import run_policy
 
     model_dir, checkpoint, steps, seed, execute = job
     torch.set_num_threads(1)
     placement = Placement()
-    policy, ck = load_policy(Path(model_dir) / CHECKPOINTS[checkpoint], placement)
+    policy, ck = _policy(str(Path(model_dir) / CHECKPOINTS[checkpoint]))
     cfg, norm, gen = policy.cfg, Normalizer(ck["stats"]), placement.generator(seed)
     blank = np.zeros((cfg.image_size, cfg.image_size), np.float32)
     seconds: list[float] = []
@@ -74,6 +81,12 @@ def _reference(job: tuple) -> tuple[str, int, float, bool]:
         return kind, seed, float(info["coverage"]), bool(done)
     finally:
         env.close()
+
+
+def summary(episodes: list[dict]) -> dict:
+    """The score (mean highest coverage) and success rate of a set of episodes."""
+    return {"score": float(np.mean([e["coverage"] for e in episodes])),
+            "success": float(np.mean([e["success"] for e in episodes]))}
 
 
 def check_model(d: Path) -> dict:
@@ -135,11 +148,8 @@ def main(argv: list[str] | None = None) -> int:
         ref_jobs = [(kind, args.seed + i) for kind in REFERENCES for i in range(args.episodes)]
         for kind, seed, coverage, ok in pool.map(_reference, ref_jobs):
             ref_eps.setdefault(kind, []).append({"seed": seed, "coverage": coverage, "success": ok})
-    refs = {k: {"score": float(np.mean([e["coverage"] for e in eps])),
-                "success": float(np.mean([e["success"] for e in eps]))} for k, eps in ref_eps.items()}
-    rows = {key: {ck: {"score": float(np.mean([e["coverage"] for e in eps])),
-                       "success": float(np.mean([e["success"] for e in eps])),
-                       "ms": float(np.median([e["ms"] for e in eps]))} for ck, eps in by_ck.items()}
+    refs = {k: summary(eps) for k, eps in ref_eps.items()}
+    rows = {key: {ck: {**summary(eps), "ms": float(np.median([e["ms"] for e in eps]))} for ck, eps in by_ck.items()}
             for key, by_ck in per.items()}
     headline = {f"{m}/{s}": {"score_best": round(r["best"]["score"], 3), "score_last": round(r["last"]["score"], 3),
                              "success_last": round(r["last"]["success"], 3)} for (m, s), r in rows.items()}

@@ -165,8 +165,8 @@ def mode_lines(ev: dict, rp: dict) -> list[str]:
         default = next((r for r in best.values() if r.get("default")), None)
         if default is None or default.get("commitment") is None:
             continue
-        for r in sorted({id(x): x for x in (default, best.get(f"{default['method']}/16", default))}.values(),
-                        key=lambda x: x["steps"]):
+        at16 = best.get(f"{default['method']}/16")
+        for r in [default] + ([at16] if at16 is not None and at16["steps"] != default["steps"] else []):
             label = model if r["method"] == "direct" else f"{model}/{r['method']}-{r['steps']}"
             per = rp.get("per_episode", {}).get(label, {})
             cells = []

@@ -34,9 +34,13 @@ def compute_stats(path: str, names: list[str]) -> dict[str, list[float]]:
     """Per-dimension min/max of the targets over `names` (the train split)."""
     with h5py.File(path, "r") as f:
         allv = np.concatenate([raw_target(f[schema.EPISODES][n]) for n in names])
-    lo, hi = allv.min(0), allv.max(0)
-    pad = np.maximum((hi - lo) * 0.05, 1e-3)  # a margin so test trajectories rarely leave [-1, 1]
-    return {"min": (lo - pad).tolist(), "max": (hi + pad).tolist()}
+    return padded_range(allv.min(0), allv.max(0))
+
+
+def padded_range(lo: np.ndarray, hi: np.ndarray, prefix: str = "") -> dict[str, list[float]]:
+    """{prefix}min / {prefix}max: the range widened by 5 % each side, so test values rarely leave [-1, 1]."""
+    pad = np.maximum((hi - lo) * 0.05, 1e-3)
+    return {f"{prefix}min": (lo - pad).tolist(), f"{prefix}max": (hi + pad).tolist()}
 
 
 def compute_window_stats(index: str | Path, names: list[str], windows: Windows) -> dict[str, list[float]]:
@@ -58,9 +62,7 @@ def compute_window_stats(index: str | Path, names: list[str], windows: Windows) 
         rel = np.concatenate([uv, xyz - now[:, None]], -1).reshape(-1, ACTION_DIM)
         lo, hi = np.minimum(lo, rel.min(0)), np.maximum(hi, rel.max(0))
         slo, shi = np.minimum(slo, now.min(0)), np.maximum(shi, now.max(0))
-    pad, spad = np.maximum((hi - lo) * 0.05, 1e-3), np.maximum((shi - slo) * 0.05, 1e-3)
-    return {"min": (lo - pad).tolist(), "max": (hi + pad).tolist(), "state_min": (slo - spad).tolist(),
-            "state_max": (shi + spad).tolist()}
+    return {**padded_range(lo, hi), **padded_range(slo, shi, "state_")}
 
 
 class Normalizer:
@@ -237,12 +239,11 @@ def compute_action_stats(index: str | Path, names: list[str]) -> dict[str, list[
         if "action" not in fr or "state" not in fr:
             raise AdlError(f"{files.files[n]}: episode {n} has no state/action per frame; ingest the bags with "
                            "the topic map's state and action topics")
-        acts.append(np.nanmin(fr["action"][()], 0)), acts.append(np.nanmax(fr["action"][()], 0))
-        states.append(np.nanmin(fr["state"][()], 0)), states.append(np.nanmax(fr["state"][()], 0))
-    (lo, hi), (slo, shi) = (np.min(acts, 0), np.max(acts, 0)), (np.min(states, 0), np.max(states, 0))
-    pad, spad = np.maximum((hi - lo) * 0.05, 1e-3), np.maximum((shi - slo) * 0.05, 1e-3)
-    return {"min": (lo - pad).tolist(), "max": (hi + pad).tolist(), "state_min": (slo - spad).tolist(),
-            "state_max": (shi + spad).tolist()}
+        a, s = fr["action"][()], fr["state"][()]
+        acts += [np.nanmin(a, 0), np.nanmax(a, 0)]
+        states += [np.nanmin(s, 0), np.nanmax(s, 0)]
+    return {**padded_range(np.min(acts, 0), np.max(acts, 0)),
+            **padded_range(np.min(states, 0), np.max(states, 0), "state_")}
 
 
 class WindowDataset(Dataset):
@@ -295,12 +296,13 @@ class WindowDataset(Dataset):
             return self._metas[e]
         g = self.files.group(self.names[e])
         fr = g["frames"]
-        if self.w.target == "action":
-            return self._action_meta(e, fr)
-        m = {"t": fr["t"][()], "frame_ee": fr["ee_pos"][()].astype(np.float32), "ee_t": g["series/ee_t"][()],
-             "ee_pos": g["series/ee_pos"][()], "K": g["K"][()], "T": g["T_base_camera"][()],
-             "aff_index": fr["affordance_index"][()], "aff": {},
+        m = {"aff_index": fr["affordance_index"][()], "aff": {},
              "depth_index": fr["depth_index"][()] if self.use_depth else None}
+        if self.w.target == "action":
+            m.update(state=fr["state"][()].astype(np.float32), action=fr["action"][()].astype(np.float32))
+        else:
+            m.update(t=fr["t"][()], frame_ee=fr["ee_pos"][()].astype(np.float32), ee_t=g["series/ee_t"][()],
+                     ee_pos=g["series/ee_pos"][()], K=g["K"][()], T=g["T_base_camera"][()])
         if len(self._metas) >= 256:
             self._metas.pop(next(iter(self._metas)))
         self._metas[e] = m
@@ -341,15 +343,6 @@ class WindowDataset(Dataset):
         now = m["frame_ee"][k].astype(float)
         uv = project(xyz, m["K"], m["T"]) - project(now[None], m["K"], m["T"])
         return obs, state, np.concatenate([uv, xyz - now], 1).astype(np.float32)
-
-    def _action_meta(self, e: int, fr: h5py.Group) -> dict:
-        m = {"state": fr["state"][()].astype(np.float32), "action": fr["action"][()].astype(np.float32),
-             "aff_index": fr["affordance_index"][()], "aff": {},
-             "depth_index": fr["depth_index"][()] if self.use_depth else None}
-        if len(self._metas) >= 256:
-            self._metas.pop(next(iter(self._metas)))
-        self._metas[e] = m
-        return m
 
     def _depth(self, m: dict, g: h5py.Group, k: int) -> np.ndarray:
         d = int(m["depth_index"][k])
