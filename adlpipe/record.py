@@ -3,10 +3,13 @@
     python -m adlpipe.record --episodes 3 --out data/bags            # 3 episodes of each task, ROS2 MCAP
     python -m adlpipe.record --format bag --image-format jpeg ...    # ROS1 .bag with CompressedImage
     python -m adlpipe.record --world pusht --episodes 100 --out ...  # Push-T (gym-pusht), seeds 0..99
+    python -m adlpipe.record --world kitchen --episodes 50 --out ... # Franka Kitchen (gymnasium-robotics)
 
 Push-T bags carry the rendered image with a top-down camera model, the agent as end effector and joint state, the
 T block's pose in tf, and the state (agent x, y) and action (target x, y) topics of PUSHT_TOPICS; ingest them with
-`--config pipelines/pusht/topics.yaml`.
+`--config pipelines/pusht/topics.yaml`. Franka Kitchen bags likewise carry the rendered image, the robot's joints,
+the end-effector site in tf, the kettle's pose, the 59-D observation as state and the 9-D joint-velocity action
+(KITCHEN_TOPICS, `--config pipelines/kitchen/topics.yaml`).
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ MAX_ATTEMPTS = 8  # a demonstration whose success predicate still fails is re-sa
 # Push-T's topics: the camera has no depth, there is no affordance map or gripper; the policy's state and action.
 PUSHT_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint=None, ee_frame="agent", state="/pusht/state",
                         action="/pusht/action")
+KITCHEN_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint="panda0_finger_joint1", ee_frame="end_effector",
+                          state="/kitchen/state", action="/kitchen/action")
 
 
 def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format: str, episode_index: int,
@@ -132,12 +137,25 @@ def _record_pusht_one(job: tuple) -> tuple[str, int, bool]:
     return str(path), 1, st.success
 
 
+def _record_kitchen_one(job: tuple) -> tuple[str, int, bool]:
+    """Franka Kitchen: the demonstration from initial condition `seed` (deterministic, like Push-T's: one try,
+    recorded and counted whether or not all four tasks were done)."""
+    from .sim.kitchen import record
+
+    idx, out, seed, fmt, image_format, size = job
+    st = record(seed + idx, size)
+    path = Path(out) / f"franka_kitchen_{idx:04d}{FORMATS[fmt]}"
+    write_episode_bag(st, path, fmt, image_format, "32FC1", episode_index=idx, topics=KITCHEN_TOPICS)
+    return str(path), 1, st.success
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     from .sim.tasks import TASK_NAMES
 
     p = Parser("python -m adlpipe.record", __doc__)
-    p.add_argument("--world", choices=["adl", "pusht"], default="adl",
-                   help="adl: the MuJoCo ADL world (default); pusht: gym-pusht's Push-T (optional extra)")
+    p.add_argument("--world", choices=["adl", "pusht", "kitchen"], default="adl",
+                   help="adl: the MuJoCo ADL world (default); pusht: gym-pusht's Push-T; kitchen: gymnasium-robotics' "
+                   "Franka Kitchen (both optional extras)")
     p.add_argument("--episodes", type=int_range(1, 100_000), default=3, help="episodes per task (default 3)")
     p.add_argument("--out", required=True, type=Path, help="output folder for the bags")
     p.add_argument("--tasks", nargs="+", default=TASK_NAMES, metavar="TASK",
@@ -170,6 +188,12 @@ def main(argv: list[str] | None = None) -> int:
         make_env().close()  # the optional extra's absence is one line here, not one per worker
         worker, jobs = _record_pusht_one, [(i, str(args.out), args.seed, args.format, args.image_format, args.size)
                                            for i in range(args.episodes)]
+    elif args.world == "kitchen":
+        from .sim.kitchen import make_env as make_kitchen
+
+        make_kitchen().close()
+        worker, jobs = _record_kitchen_one, [(i, str(args.out), args.seed, args.format, args.image_format,
+                                              args.size) for i in range(args.episodes)]
     else:
         worker = _record_one
         jobs = [(t, i, str(args.out), args.seed, args.format, args.image_format, args.depth_format, args.size,
