@@ -38,6 +38,7 @@ PUSHT_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint=None, ee_fram
                         action="/pusht/action")
 KITCHEN_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint="panda0_finger_joint1", ee_frame="end_effector",
                           state="/kitchen/state", action="/kitchen/action")
+SEEDED_WORLDS = {"pusht": ("push_the_T", PUSHT_TOPICS), "kitchen": ("franka_kitchen", KITCHEN_TOPICS)}  # bag stem
 
 
 def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format: str, episode_index: int,
@@ -125,27 +126,21 @@ def _record_one(job: tuple) -> tuple[str, int, bool]:
     return str(path), attempt + 1, st.success
 
 
-def _record_pusht_one(job: tuple) -> tuple[str, int, bool]:
-    """Push-T: the demonstration from initial condition `seed` (the demonstrator is deterministic: no retries; a
-    demonstration that misses the goal is recorded and counted)."""
-    from .sim.pusht import record
+def _seeded_world(name: str) -> object:
+    """The module of a seeded benchmark world (make_env, record)."""
+    from .sim import kitchen, pusht
 
-    idx, out, seed, fmt, image_format, size = job
-    st = record(seed + idx, size)
-    path = Path(out) / f"push_the_T_{idx:04d}{FORMATS[fmt]}"
-    write_episode_bag(st, path, fmt, image_format, "32FC1", episode_index=idx, topics=PUSHT_TOPICS)
-    return str(path), 1, st.success
+    return {"pusht": pusht, "kitchen": kitchen}[name]
 
 
-def _record_kitchen_one(job: tuple) -> tuple[str, int, bool]:
-    """Franka Kitchen: the demonstration from initial condition `seed` (deterministic, like Push-T's: one try,
-    recorded and counted whether or not all four tasks were done)."""
-    from .sim.kitchen import record
-
-    idx, out, seed, fmt, image_format, size = job
-    st = record(seed + idx, size)
-    path = Path(out) / f"franka_kitchen_{idx:04d}{FORMATS[fmt]}"
-    write_episode_bag(st, path, fmt, image_format, "32FC1", episode_index=idx, topics=KITCHEN_TOPICS)
+def _record_seeded_one(job: tuple) -> tuple[str, int, bool]:
+    """Push-T or Franka Kitchen: the demonstration from initial condition `seed` (their demonstrators are
+    deterministic: no retries; a demonstration that misses its goal is recorded and counted)."""
+    world, idx, out, seed, fmt, image_format, size = job
+    stem, topics = SEEDED_WORLDS[world]
+    st = _seeded_world(world).record(seed + idx, size)
+    path = Path(out) / f"{stem}_{idx:04d}{FORMATS[fmt]}"
+    write_episode_bag(st, path, fmt, image_format, "32FC1", episode_index=idx, topics=topics)
     return str(path), 1, st.success
 
 
@@ -182,18 +177,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    if args.world == "pusht":
-        from .sim.pusht import make_env
-
-        make_env().close()  # the optional extra's absence is one line here, not one per worker
-        worker, jobs = _record_pusht_one, [(i, str(args.out), args.seed, args.format, args.image_format, args.size)
-                                           for i in range(args.episodes)]
-    elif args.world == "kitchen":
-        from .sim.kitchen import make_env as make_kitchen
-
-        make_kitchen().close()
-        worker, jobs = _record_kitchen_one, [(i, str(args.out), args.seed, args.format, args.image_format,
-                                              args.size) for i in range(args.episodes)]
+    if args.world in SEEDED_WORLDS:
+        _seeded_world(args.world).make_env().close()  # the optional extra's absence is one line here, not per worker
+        worker, jobs = _record_seeded_one, [(args.world, i, str(args.out), args.seed, args.format, args.image_format,
+                                             args.size) for i in range(args.episodes)]
     else:
         worker = _record_one
         jobs = [(t, i, str(args.out), args.seed, args.format, args.image_format, args.depth_format, args.size,

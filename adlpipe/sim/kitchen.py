@@ -23,8 +23,9 @@ from the solve) on a copy of the state, tracked with an integral term against th
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
@@ -43,6 +44,7 @@ KETTLE_GOAL = np.array([-0.23, 0.75, 1.62])
 _NDIM = {0: (7, 6), 1: (4, 3), 2: (1, 1), 3: (1, 1)}  # mjtJoint free, ball, slide, hinge: (qpos, qvel) sizes
 
 
+@cache  # once per process: the probe compiles a model
 def _patch_joint_readers() -> None:
     import mujoco
     from gymnasium_robotics.utils import mujoco_utils as mu
@@ -124,7 +126,7 @@ class ArmIK:
 
         self.mj, self.model, self.data = mujoco, model, data
         self.scratch = mujoco.MjData(model)
-        self.site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "end_effector")
+        self.site = model.site("end_effector").id
         self.rest = data.qpos[:7].copy()
 
     def pose(self, d: object | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -177,10 +179,8 @@ class KitchenScript:
     """The demonstrator: act() -> the next 9-D action, until the script ends (then it holds still)."""
 
     def __init__(self, env: object) -> None:
-        import mujoco
-
         u = env.unwrapped
-        self.mj, self.model, self.data = mujoco, u.model, u.data
+        self.data = u.data
         self.ik = ArmIK(u.model, u.data)
         self.q_ref = self.data.qpos[:7].copy()
         self.integral = np.zeros(7)
@@ -189,10 +189,10 @@ class KitchenScript:
         self.plan = iter(self._script())
 
     def site(self, name: str) -> np.ndarray:
-        return self.data.site_xpos[self.mj.mj_name2id(self.model, self.mj.mjtObj.mjOBJ_SITE, name)].copy()
+        return self.data.site(name).xpos.copy()
 
     def body(self, name: str) -> np.ndarray:
-        return self.data.xpos[self.mj.mj_name2id(self.model, self.mj.mjtObj.mjOBJ_BODY, name)].copy()
+        return self.data.body(name).xpos.copy()
 
     def kettle(self) -> np.ndarray:
         return self.body("kettleroot")
@@ -242,8 +242,8 @@ class KitchenScript:
                 a = k / seg.steps
                 a = a * a * (3 - 2 * a) if seg.smooth else a
                 if seg.arc is not None:
-                    centre, angle = seg.arc
-                    turn = rot_z(angle * a)
+                    centre, swing = seg.arc
+                    turn = rot_z(swing * a)
                     p, Rk = centre + turn @ (start - centre), turn @ R
                 else:  # position along the line, orientation turned by the same share
                     p, Rk = start + (goal - start) * a, R_now @ _rodrigues(axis, angle * a)
@@ -271,11 +271,15 @@ class Step:
     info: dict  # after the action: tasks completed so far
 
 
-def demonstrate(env: object, seed: int, max_steps: int = MAX_STEPS) -> Iterator[Step]:
-    """Run the scripted demonstrator from initial condition `seed` until all four tasks are done or the limit."""
+def demonstrate(env: object, seed: int, max_steps: int = MAX_STEPS,
+                sense: Callable[[], None] | None = None) -> Iterator[Step]:
+    """Run the scripted demonstrator from initial condition `seed` until all four tasks are done or the limit;
+    `sense()` is called on the scene each action is chosen on (the recorder's sensors)."""
     obs = reset(env, seed)
     script = KitchenScript(env)
     for _ in range(max_steps):
+        if sense is not None:
+            sense()
         action = script.act()
         nxt, _r, done, _trunc, info = env.step(action)
         yield Step(obs, action, info)
@@ -332,9 +336,13 @@ class KitchenCamera:
         self.renderer.close()
 
 
+def robot_joint_names(model: object) -> list[str]:
+    return [model.joint(i).name.split(":")[-1] for i in range(9)]
+
+
 def observation_names(model: object) -> list[str]:
     """Names of the 59 observation dimensions: robot joint positions and velocities, then the kitchen's."""
-    robot = [model.joint(i).name.split(":")[-1] for i in range(9)]
+    robot = robot_joint_names(model)
     qpos, qvel = [], []
     for j in range(9, model.njnt):
         name = model.joint(j).name
@@ -358,25 +366,22 @@ def record(seed: int, size: int = 64) -> object:
     camera = KitchenCamera(m, size)
     try:
         K, T = camera_model(m, size)
-        site = m.site("end_effector").id
-        kettle = m.body("kettleroot").id
-        st = Streams(TASK, SceneSpec(task=TASK, poses={}), size, size, K, T,
-                     joint_names=[m.joint(i).name.split(":")[-1] for i in range(9)],
+        site, kettle = m.site("end_effector").id, m.body("kettleroot").id
+        st = Streams(TASK, SceneSpec(task=TASK, poses={}), size, size, K, T, joint_names=robot_joint_names(m),
                      state_names=observation_names(m), action_names=[m.actuator(i).name for i in range(9)])
-        obs, script, info = reset(env, seed), KitchenScript(env), {}
-        for i in range(MAX_STEPS):  # each stream's sample at t is what the action at t was chosen on
-            t = i / CONTROL_HZ
+
+        def sense() -> None:  # stamped at the control step whose action is chosen on this scene
+            t = len(st.camera) / CONTROL_HZ
             st.camera.append((t, camera.render(d), None))
             st.joints.append((t, d.qpos[:9].copy(), d.qvel[:9].copy()))
             st.ee.append((t, d.site_xpos[site].copy(), matrix_to_quat(d.site_xmat[site].reshape(3, 3))))
             st.objects.append((t, {"kettle": (d.xpos[kettle].copy(), d.xquat[kettle].copy())}))
-            action = script.act()
-            st.states.append((t, obs))
-            st.actions.append((t, action))
-            nxt, _r, done, _trunc, info = env.step(action)
-            obs = nxt["observation"].copy()
-            if done:
-                break
+
+        info: dict = {}
+        for i, step in enumerate(demonstrate(env, seed, sense=sense)):
+            st.states.append((i / CONTROL_HZ, step.obs))
+            st.actions.append((i / CONTROL_HZ, step.action))
+            info = step.info
     finally:
         camera.close()
         env.close()
