@@ -209,7 +209,7 @@ class KitchenScript:
             Segment(lambda s: handle, fwd, False, 6, settle=10),
             Segment(here, fwd, True, 4),
             Segment(here, fwd, True, 6),
-            Segment(here, fwd, True, 32, arc=(hinge, -1.0)),
+            Segment(here, fwd, True, 56, arc=(hinge, -1.0)),  # slowly: a faster swing slips out of the grasp
             Segment(here, None, False, 3),
             Segment(lambda s: here(s) + [0, -0.1, 0.1], None, False, 6),
             # light switch: fingers closed, push the lever from its right towards -x
@@ -218,12 +218,12 @@ class KitchenScript:
             Segment(lambda s: s.site("light_site") + [-0.18, 0.015, 0.01], fwd, True, 12),
             Segment(lambda s: here(s) + [0, -0.1, 0], fwd, True, 4),
             # slide cabinet: push the handle from its left towards +x
-            Segment(lambda s: s.site("slide_site") + [-0.08, -0.02, 0], fwd, True, 10, settle=6),
+            Segment(lambda s: s.site("slide_site") + [-0.08, -0.02, 0], fwd, True, 8, settle=6),
             Segment(lambda s: s.site("slide_site") + [0.3, -0.02, 0], fwd, True, 14),
             Segment(lambda s: here(s) + [0, -0.1, 0], fwd, True, 5),
             # kettle: turn the fingers down high above the stove, grasp the handle from above, lift, carry it to
             # the top burner, set it down
-            Segment(lambda s: s.site("kettle_site") + [0, -0.1, 0.3], down, False, 16, settle=8),
+            Segment(lambda s: s.site("kettle_site") + [0, -0.1, 0.3], down, False, 14, settle=8),
             Segment(lambda s: s.site("kettle_site") + [0, 0, 0.12], down, False, 8, settle=8),
             Segment(lambda s: s.site("kettle_site"), down, False, 6, settle=10),
             Segment(here, down, True, 4),
