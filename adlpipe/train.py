@@ -18,7 +18,9 @@ Training augments (a random shift of the image stack with the pixel targets move
 turns it off; validation and test never augment. --closed-loop trains on every frame (adlpipe.dataset.loader
 .WindowDataset): To frames and the end effector's position at each in, the next Tp waypoints at a fixed rate out,
 relative to the end effector now. An epoch draws one random window per training episode, so a closed-loop model
-takes the same optimiser steps as a first-frame one.
+takes the same optimiser steps as a first-frame one. --target action learns the bags' action stream from their
+state stream (val px is then the action's error in its own units); --no-image drops the image encoder, so the state
+alone conditions the model (the seed's Franka Kitchen setting).
 """
 
 from __future__ import annotations
@@ -91,13 +93,20 @@ def collate_obs(items: list) -> Observation:
     return torch.stack(items)
 
 
+def val_dims(cfg: ModelConfig) -> int:
+    """How many target dimensions the validation error measures: the waypoints' pixels (u, v), or the whole
+    recorded action (Push-T's is a pixel position; Franka Kitchen's, joint velocities)."""
+    return cfg.action_dim if cfg.target == "action" else 2
+
+
 def validation_px(policy: Policy, obs: Observation, target_px: torch.Tensor, norm: Normalizer, seed: int,
                   precision: str = "fp32") -> float:
-    """Mean per-waypoint pixel error of the default sampler on the validation episodes (same noise every time)."""
+    """Mean per-waypoint error (L2, the target's units: pixels, or the action's) of the default sampler on the
+    validation episodes (same noise every time)."""
     device = target_px.device
     with autocast(device, precision):
         pred = policy.predict(obs, policy.default_steps, None, generator(device, seed))
-    return float((norm.unnormalize(pred)[..., :2] - target_px).norm(dim=-1).mean())
+    return float((norm.unnormalize(pred)[..., :target_px.shape[-1]] - target_px).norm(dim=-1).mean())
 
 
 def converged(history: list[dict], tolerance: float = CONVERGENCE_TOLERANCE) -> bool:
@@ -135,7 +144,7 @@ def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], 
     """(stats, train, test, val) datasets of the model's kind: windows of every frame (closed loop) or first frames.
     aug: the training augmentation (validation and test never augment)."""
     if cfg.closed_loop:
-        w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz, cfg.target)
+        w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz, cfg.target, cfg.use_image)
         stats = (compute_action_stats(data, train_names) if cfg.target == "action"
                  else compute_window_stats(data, train_names, w))
 
@@ -175,14 +184,14 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     if horizon != cfg.horizon and not cfg.closed_loop:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
     train_names, val_names = split_validation(tasks, val_fraction, seed)
-    aug = Augment(stored_size) if augment else None
+    aug = Augment(stored_size) if augment and cfg.use_image else None
     stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed)
     norm = Normalizer(stats)
     val_obs, val_px_target = None, None
     if val_ds is not None and ranks.main:
         items = [val_ds[i] for i in range(len(val_ds))]
         val_obs = to_device(collate_obs([o for o, _ in items]), device)
-        val_px_target = norm.unnormalize(torch.stack([a for _, a in items]))[..., :2].to(device)
+        val_px_target = norm.unnormalize(torch.stack([a for _, a in items]))[..., :val_dims(cfg)].to(device)
     sampler = EpochSampler(len(train_ds), ranks.world, ranks.rank, seed)
     # One loader for the run: its workers (each with its own HDF5 handles) live as long as it does.
     loader = DataLoader(TrainingSamples(train_ds, seed), batch_size=batch_size // ranks.world, sampler=sampler,
@@ -327,6 +336,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="closed loop: Tp, a multiple of 4 (default 16)")
     p.add_argument("--rate-hz", type=float_range(0.1, 1000), default=10.0,
                    help="closed loop: waypoint rate (default 10 Hz)")
+    p.add_argument("--no-image", action="store_true",
+                   help="closed loop: a state-only model (no image encoder; the state stream alone conditions it, "
+                   "as the seed's Franka Kitchen policies)")
     p.add_argument("--target", choices=["ee", "action"], default="ee",
                    help="closed loop: ee (end-effector waypoints, default) or action (the bags' action stream per "
                    "frame, with their state stream as the state input: Push-T, joint-space policies)")
@@ -345,10 +357,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.action_steps % 4:
             raise AdlError(f"--action-steps {args.action_steps}: the U-Net needs a multiple of 4")
         horizon = args.action_steps
-        overrides.update(n_obs=args.obs_frames, rate_hz=args.rate_hz, state_dim=3 * args.obs_frames)
+        overrides.update(n_obs=args.obs_frames, rate_hz=args.rate_hz, state_dim=3 * args.obs_frames,
+                         use_image=not args.no_image)
         if args.target == "action":
             state_dim, action_dim = stream_sizes(args.data)
             overrides.update(target="action", action_dim=action_dim, state_dim=state_dim * args.obs_frames)
+    elif args.no_image:
+        raise AdlError("--no-image needs --closed-loop: a first-frame model has no state input")
     elif horizon % 4:  # the U-Net halves the sequence twice; the transformers take any length
         raise AdlError(f"{args.data}: {horizon} waypoints per trajectory; the models need a multiple of 4 "
                        "(re-ingest with --waypoints 32)")

@@ -79,7 +79,7 @@ def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path
     for r in rows.values():
         eps = r["per_episode"]["last"]
         assert [e["seed"] for e in eps] == [100_000, 100_001]
-        assert all(0.0 <= e["coverage"] <= 1.0 for e in eps)
+        assert all(0.0 <= e["score"] <= 1.0 for e in eps)
     assert "| fm_cnn | 2 |" in (out / "t.md").read_text()
     refs = details["references"]
     assert refs["demonstrator"]["success"] == 1.0 and refs["demonstrator"]["score"] > 0.95

@@ -222,12 +222,14 @@ MAX_CACHED_WINDOWS = 2000  # ~0.3 GB of 8 x 64 x 64 float32 windows at most
 class Windows:
     """The closed-loop sample: observation frames t-n_obs+1..t, and the end effector's next `horizon` waypoints
     at `rate_hz` (t + 1/rate .. t + horizon/rate); with target "action", the recorded actions of frames
-    t..t+horizon-1 instead (absolute, the last repeated after the end) and the recorded state as the state input."""
+    t..t+horizon-1 instead (absolute, the last repeated after the end) and the recorded state as the state input.
+    images False: a state-only model's sample, whose image part is empty (no image is read)."""
 
     n_obs: int = 2
     horizon: int = 16
     rate_hz: float = 10.0
     target: str = "ee"
+    images: bool = True
 
 
 def compute_action_stats(index: str | Path, names: list[str]) -> dict[str, list[float]]:
@@ -318,22 +320,14 @@ class WindowDataset(Dataset):
         return m["aff"][a]
 
     def raw(self, e: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(observation (To*C, S, S), end-effector positions at those frames (To, 3), target (Tp, 5)) of frame k of
-        episode e: the same channels as observation_from_arrays, for a stack at once. The target is relative to
-        where the end effector is at frame k: pixels from its projection, metres from its position."""
+        """(observation (To*C, S, S), empty without images; end-effector positions at those frames (To, 3); target
+        (Tp, 5)) of frame k of episode e: the same channels as observation_from_arrays, for a stack at once. The
+        target is relative to where the end effector is at frame k: pixels from its projection, metres from its
+        position. With target "action": the recorded states and actions instead."""
         g = self.files.group(self.names[e])
         m = self._meta(e)
-        lo = max(k - self.w.n_obs + 1, 0)
-        rgbs = g["frames/rgb"][lo:k + 1]  # one read for the whole stack
         idx = [max(j, 0) for j in range(k - self.w.n_obs + 1, k + 1)]
-        size = (self.image_size, self.image_size)  # resized frame by frame, exactly as at inference
-        rgb = np.stack([cv2.resize(rgbs[i - lo], size, interpolation=cv2.INTER_AREA) for i in idx])
-        rgb = rgb.transpose(0, 3, 1, 2)
-        chans = [rgb.astype(np.float32) / 127.5 - 1.0,
-                 np.stack([self._affordance(m, g, i) for i in idx])[:, None]]
-        if self.use_depth:
-            chans.append(np.stack([self._depth(m, g, i) for i in idx])[:, None])
-        obs = np.concatenate(chans, axis=1).reshape(-1, self.image_size, self.image_size)
+        obs = self._images(g, m, k, idx) if self.w.images else np.zeros(0, np.float32)
         if self.w.target == "action":
             ahead = np.minimum(np.arange(k, k + self.w.horizon), len(m["action"]) - 1)
             return obs, m["state"][idx], m["action"][ahead]
@@ -343,6 +337,19 @@ class WindowDataset(Dataset):
         now = m["frame_ee"][k].astype(float)
         uv = project(xyz, m["K"], m["T"]) - project(now[None], m["K"], m["T"])
         return obs, state, np.concatenate([uv, xyz - now], 1).astype(np.float32)
+
+    def _images(self, g: h5py.Group, m: dict, k: int, idx: list[int]) -> np.ndarray:
+        """The stacked image channels of frames idx (ending at k)."""
+        lo = idx[0]
+        rgbs = g["frames/rgb"][lo:k + 1]  # one read for the whole stack
+        size = (self.image_size, self.image_size)  # resized frame by frame, exactly as at inference
+        rgb = np.stack([cv2.resize(rgbs[i - lo], size, interpolation=cv2.INTER_AREA) for i in idx])
+        rgb = rgb.transpose(0, 3, 1, 2)
+        chans = [rgb.astype(np.float32) / 127.5 - 1.0,
+                 np.stack([self._affordance(m, g, i) for i in idx])[:, None]]
+        if self.use_depth:
+            chans.append(np.stack([self._depth(m, g, i) for i in idx])[:, None])
+        return np.concatenate(chans, axis=1).reshape(-1, self.image_size, self.image_size)
 
     def _depth(self, m: dict, g: h5py.Group, k: int) -> np.ndarray:
         d = int(m["depth_index"][k])
@@ -358,7 +365,7 @@ class WindowDataset(Dataset):
             return self._cached[i]
         e, k = self.window(i, epoch)
         obs, state, target = self.raw(e, k)
-        if self.augment is not None:
+        if self.augment is not None and self.w.images:
             rng = np.random.default_rng([self.seed, epoch, i, 1])
             obs, _ = self.augment(obs, target, rng, 5 if self.use_depth else 4)  # relative targets do not move
         item = ((torch.from_numpy(obs.astype(np.float32)), self.normalize_state(state)),

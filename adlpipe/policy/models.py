@@ -61,6 +61,7 @@ class ModelConfig:
     action_dim: int = ACTION_DIM  # waypoint (u, v, x, y, z); with target "action" the recorded action's size
     target: str = "ee"  # closed loop: "ee" (end-effector waypoints) or "action" (the bag's action stream, with its
     #                     state stream as the state input: Push-T, joint-space policies)
+    use_image: bool = True  # False: no image encoder, the state alone conditions the network (Franka Kitchen)
 
     @property
     def in_channels(self) -> int:
@@ -121,7 +122,8 @@ class UnetRegressor(nn.Module):
 
 
 class Policy(nn.Module):
-    """obs (B, C, S, S) -> normalised trajectory (B, horizon, 5)."""
+    """obs (B, C, S, S) (closed loop: with the state (B, state_dim)) -> normalised trajectory (B, horizon,
+    action_dim)."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
@@ -130,8 +132,8 @@ class Policy(nn.Module):
         self.cfg = cfg
         self.kind, net = MODELS[cfg.model]
         self.objective = make_objective(self.kind)
-        self.encoder = ResNet18GN(cfg.in_channels, cfg.obs_dim, cfg.encoder_width)
-        cond = cfg.obs_dim + cfg.state_dim
+        self.encoder = ResNet18GN(cfg.in_channels, cfg.obs_dim, cfg.encoder_width) if cfg.use_image else None
+        cond = (cfg.obs_dim if cfg.use_image else 0) + cfg.state_dim
         if net in ("unet", "unet_regressor"):
             self.net = ConditionalUnet1D(cfg.action_dim, cond, cfg.down_dims, cfg.kernel, cfg.groups)
             if net == "unet_regressor":
@@ -157,10 +159,11 @@ class Policy(nn.Module):
         return self.kind.split("_")[0]
 
     def condition(self, obs: Observation) -> torch.Tensor:
-        """The image feature, with the normalised end-effector state beside it when the model takes one."""
+        """The image feature, with the normalised state beside it when the model takes one (a state-only model:
+        the state alone; its image part is empty)."""
         if isinstance(obs, tuple | list):
             image, state = obs
-            return torch.cat([self.encoder(image), state], dim=1)
+            return state if self.encoder is None else torch.cat([self.encoder(image), state], dim=1)
         return self.encoder(obs)
 
     def loss(self, obs: Observation, action: torch.Tensor, noise: Noise | None = None,
@@ -175,7 +178,7 @@ class Policy(nn.Module):
 
     def compile_for_inference(self) -> Policy:
         """torch.compile the encoder and the network (the samplers' Python loop stays eager)."""
-        self.encoder = torch.compile(self.encoder)
+        self.encoder = self.encoder if self.encoder is None else torch.compile(self.encoder)
         self.net = torch.compile(self.net)
         return self
 

@@ -388,3 +388,50 @@ def record(seed: int, size: int = 64) -> object:
     st.success = completed(info) == set(TASKS)
     st.duration = len(st.camera) / CONTROL_HZ
     return st
+
+
+REFERENCES = ("demonstrator",)  # holding still completes nothing: no reference needed for the bottom of the scale
+
+
+def _outcome(done: set[str]) -> dict:
+    """An episode's score: the share of the four tasks done; success: all four."""
+    return {"score": len(done) / len(TASKS), "success": done == set(TASKS), "tasks": sorted(done)}
+
+
+def run_policy(plan: Callable[[None, np.ndarray], np.ndarray], seed: int, execute: int, n_obs: int,
+               max_steps: int = MAX_STEPS) -> dict:
+    """The seed's closed loop on Franka Kitchen from initial condition `seed`: plan(None, states) -> actions (Tp, 9)
+    from the last n_obs 59-D observations (the first repeated before the start; a state-only policy sees no image),
+    execute the first `execute`, re-plan, until all four tasks are done or the 280-step limit."""
+    env = make_env()
+    try:
+        history = [reset(env, seed)] * n_obs
+        done_tasks: set[str] = set()
+        plans, steps = 0, 0
+        while steps < max_steps:
+            actions = np.asarray(plan(None, np.stack(history)))
+            plans += 1
+            for a in actions[:execute]:
+                obs, _r, done, _trunc, info = env.step(np.clip(a, -1.0, 1.0))
+                history = history[1:] + [obs["observation"].copy()]
+                done_tasks |= completed(info)
+                steps += 1
+                if done or steps >= max_steps:
+                    return {**_outcome(done_tasks), "plans": plans}
+        return {**_outcome(done_tasks), "plans": plans}
+    finally:
+        env.close()
+
+
+def reference(kind: str, seed: int) -> dict:
+    """The scripted demonstrator from one initial condition, scored as run_policy scores a policy."""
+    if kind != "demonstrator":
+        raise ValueError(f"no kitchen reference {kind!r}")
+    env = make_env()
+    try:
+        done: set[str] = set()
+        for step in demonstrate(env, seed):
+            done |= completed(step.info)
+        return _outcome(done)
+    finally:
+        env.close()

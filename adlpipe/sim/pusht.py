@@ -251,11 +251,14 @@ def demonstrate(env: object, seed: int, max_steps: int = MAX_STEPS) -> Iterator[
                 return
 
 
+REFERENCES = ("demonstrator", "no action")  # the scale a policy's score sits on
+
+
 def run_policy(plan: object, seed: int, execute: int, n_obs: int, size: int = 96,
-               max_steps: int = MAX_STEPS) -> tuple[float, bool, int]:
+               max_steps: int = MAX_STEPS) -> dict:
     """The seed's closed loop on Push-T from initial condition `seed`: plan(frames, states) -> actions (Tp, 2) from
     the last n_obs observations (the first repeated before the start), execute the first `execute`, re-plan.
-    Returns (the highest coverage reached, success (coverage above 0.95 at some step), plans made)."""
+    Returns score (the highest coverage reached), success (coverage above 0.95 at some step) and plans made."""
     env = make_env(size)
     try:
         obs, _info = env.reset(seed=seed)
@@ -269,9 +272,24 @@ def run_policy(plan: object, seed: int, execute: int, n_obs: int, size: int = 96
                 frames = frames[1:] + [obs]
                 best, steps = max(best, float(info["coverage"])), steps + 1
                 if done:
-                    return best, True, plans
+                    return {"score": best, "success": True, "plans": plans}
                 if steps >= max_steps:
                     break
-        return best, False, plans
+        return {"score": best, "success": False, "plans": plans}
+    finally:
+        env.close()
+
+
+def reference(kind: str, seed: int) -> dict:
+    """The demonstrator, or the agent holding still (the coverage an episode starts with), from one initial
+    condition, scored as run_policy scores a policy."""
+    env = make_env()
+    try:
+        if kind == "demonstrator":
+            steps = list(demonstrate(env, seed))
+            return {"score": max(s.info["coverage"] for s in steps), "success": bool(steps[-1].info["is_success"])}
+        env.reset(seed=seed)
+        _obs, _r, done, _t, info = env.step(np.asarray(env.unwrapped.agent.position, np.float32))
+        return {"score": float(info["coverage"]), "success": bool(done)}
     finally:
         env.close()
