@@ -3,11 +3,13 @@ record and ingest (59-D state and 9-D action per frame)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_module
+import torch
+from conftest import one_line_error, run_module
 
 from adlpipe.dataset import schema
 from adlpipe.geometry import project
@@ -45,14 +47,23 @@ def test_the_demonstrator_does_all_four_tasks_from_seed_0(env: object) -> None:
     assert all(np.abs(s.action).max() <= 1.0 for s in steps)
 
 
-def test_kitchen_bags_carry_state_and_action_per_frame(tmp_path: Path) -> None:
-    run_module("record", "--world", "kitchen", "--episodes", "1", "--size", "32", "--out", tmp_path / "bags",
-               "--workers", "1", check=True)
-    run_module("ingest", *sorted((tmp_path / "bags").glob("*.mcap")), "-o", tmp_path / "k.h5", "--size", "32",
+@pytest.fixture(scope="module")
+def kitchen_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Three demonstrations (initial conditions 0-2) at 32 px, ingested with pipelines/kitchen's topic map and
+    split 2 / 1."""
+    root = tmp_path_factory.mktemp("kitchen")
+    run_module("record", "--world", "kitchen", "--episodes", "3", "--size", "32", "--out", root / "bags", check=True)
+    run_module("ingest", *sorted((root / "bags").glob("*.mcap")), "-o", root / "kitchen.h5", "--size", "32",
                "--config", Path(__file__).parents[1] / "pipelines" / "kitchen" / "topics.yaml", check=True)
-    with schema.open_dataset(tmp_path / "k.h5") as f:
-        (name,) = schema.episode_names(f)
-        g = f[schema.EPISODES][name]
+    run_module("split", root / "kitchen.h5", "-o", root / "split.json", "--test-fraction", "0.34", check=True)
+    return root
+
+
+def test_kitchen_bags_carry_state_and_action_per_frame(kitchen_data: Path) -> None:
+    with schema.open_dataset(kitchen_data / "kitchen.h5") as f:
+        names = schema.episode_names(f)
+        assert len(names) == 3
+        g = f[schema.EPISODES][names[0]]
         fr = g["frames"]
         n = len(fr["t"])
         assert 100 < n < kitchen.MAX_STEPS and np.allclose(np.diff(fr["t"][()]), 0.08, atol=1e-3)  # 12.5 Hz
@@ -63,3 +74,71 @@ def test_kitchen_bags_carry_state_and_action_per_frame(tmp_path: Path) -> None:
         # the camera model puts the end effector inside the rendered image
         uv = project(fr["ee_pos"][()].astype(float), g["K"][()], g["T_base_camera"][()])
         assert ((uv > 0) & (uv < 32)).all()
+
+
+def train(kitchen_data: Path, out: Path, model: str, *extra: str) -> None:
+    run_module("train", "--model", model, "--closed-loop", "--target", "action", *extra, "--data",
+               kitchen_data / "kitchen.h5", "--split", kitchen_data / "split.json", "--out", out, "--epochs", "2",
+               "--image-size", "32", "--val-fraction", "0.5", check=True)
+
+
+def test_state_only_policies_train_and_run_the_kitchen_benchmark(kitchen_data: Path, tmp_path: Path) -> None:
+    for model in ("fm_cnn", "bc_cnn"):
+        train(kitchen_data, tmp_path / model, model, "--no-image")
+    ck = torch.load(tmp_path / "fm_cnn" / "model.pt", weights_only=True)
+    cfg = ck["config"]
+    assert cfg["use_image"] is False and cfg["action_dim"] == 9 and cfg["state_dim"] == 2 * 59
+    assert not any(k.startswith("encoder.") for k in ck["ema"])  # no image encoder at all
+    out = tmp_path / "out"
+    run_module("benchmark", "--env", "kitchen", "--models", tmp_path / "fm_cnn", tmp_path / "bc_cnn", "--steps", "2",
+               "--episodes", "1", "--metrics", out / "m.json", "--details", out / "d.json", "--table", out / "t.md",
+               check=True)
+    details = json.loads((out / "d.json").read_text())
+    rows = {(r["model"], r["steps"]): r for r in details["results"]}
+    assert set(rows) == {("fm_cnn", 2), ("bc_cnn", 1)}
+    for r in rows.values():
+        (e,) = r["per_episode"]["last"]
+        assert e["seed"] == 100_000 and set(e["tasks"]) <= set(kitchen.TASKS)
+        assert e["score"] == len(e["tasks"]) / 4 and e["success"] == (len(e["tasks"]) == 4)
+        assert set(r["last"]["tasks"]) == set(kitchen.TASKS)
+    demo = details["references"]["demonstrator"]
+    assert demo["score"] == 1.0 and demo["tasks"] == {t: 1.0 for t in kitchen.TASKS}  # seed 100000: all four
+    table = (out / "t.md").read_text()
+    assert "| fm_cnn | 2 |" in table and "microwave / kettle / light switch / slide cabinet" in table
+
+
+def test_the_kitchen_benchmark_refuses_an_image_policy(kitchen_data: Path, tmp_path: Path) -> None:
+    """The seed's kitchen policies see the state alone: a model trained with images is refused in one line, and
+    --no-image without --closed-loop is too."""
+    train(kitchen_data, tmp_path / "img", "bc_cnn")
+    proc = run_module("benchmark", "--env", "kitchen", "--models", tmp_path / "img", "--episodes", "1",
+                      "--metrics", tmp_path / "m.json", "--details", tmp_path / "d.json", "--table", tmp_path / "t.md")
+    assert proc.returncode == 2 and "not a Franka Kitchen policy" in one_line_error(proc)
+    assert not (tmp_path / "m.json").exists()
+    proc = run_module("train", "--model", "bc_cnn", "--no-image", "--data", kitchen_data / "kitchen.h5", "--split",
+                      kitchen_data / "split.json", "--out", tmp_path / "x", "--epochs", "1")
+    assert proc.returncode == 2 and "--no-image needs --closed-loop" in one_line_error(proc)
+
+
+def test_state_only_windows_read_no_image(kitchen_data: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A state-only window carries the same state and actions as the image one, an empty image part, and never
+    reads a frame."""
+    from adlpipe.dataset.loader import WindowDataset, Windows, compute_action_stats
+
+    h5 = kitchen_data / "kitchen.h5"
+    with schema.open_dataset(h5) as f:
+        names = schema.episode_names(f)
+    stats = compute_action_stats(h5, names)
+    with_images = WindowDataset(h5, names, stats, 32, Windows(2, 16, target="action"))
+    (img, state), target = with_images[40]
+    assert img.shape == (2 * 4, 32, 32)
+
+    def no_images(*_a: object) -> None:
+        raise AssertionError("a state-only window read an image")
+
+    monkeypatch.setattr(WindowDataset, "_images", no_images)
+    state_only = WindowDataset(h5, names, stats, 32, Windows(2, 16, target="action", images=False))
+    (img2, state2), target2 = state_only[40]
+    assert img2.numel() == 0 and state2.shape == (2 * 59,) and target2.shape == (16, 9)
+    assert torch.equal(state, state2) and torch.equal(target, target2)
+    assert state2.abs().max() <= 1.0 and target2.abs().max() <= 1.0  # normalised with the train statistics

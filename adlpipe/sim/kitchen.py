@@ -22,6 +22,8 @@ from the solve) on a copy of the state, tracked with an integral term against th
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -75,7 +77,9 @@ def make_env() -> object:
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:
         import gymnasium as gym
-        import gymnasium_robotics
+
+        with contextlib.redirect_stderr(io.StringIO()):  # its import prints a notice about the Adroit environments
+            import gymnasium_robotics
     except ImportError as exc:
         raise AdlError(f"Franka Kitchen needs gymnasium-robotics ({exc.name} is missing): "
                        "pip install -e '.[kitchen]'") from None
