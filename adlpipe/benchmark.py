@@ -14,6 +14,8 @@ holding still, the coverage an episode starts with).
   Push-T: score = each episode's highest coverage of the goal (the seed's), success = coverage above 0.95.
   Franka Kitchen: score = the share of the four tasks (microwave, kettle, light switch, slide cabinet) done,
   success = all four; the table also gives each task's success rate.
+Diffusion Policy samples with --dp-sampler (default DDPM on leading timesteps, as Diffusion Policy does; a
+non-default sampler is named in the model's row).
 Writes --metrics (headline), --details (per episode) and --table (the Table 2 replica).
 """
 
@@ -36,6 +38,8 @@ from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
 from .dataset.loader import Normalizer, normalize_state, observation_from_arrays
 from .errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS, load_policy
+from .policy.models import MODELS
+from .policy.objectives import DDPM
 from .runtime import Placement
 
 FIRST_SEED = 100_000
@@ -72,7 +76,7 @@ def _policy(path: str) -> tuple:
 def _episode(job: tuple) -> tuple[str, str, int, dict]:
     from .policy.inference import predict
 
-    env, model_dir, checkpoint, steps, seed, execute = job
+    env, model_dir, checkpoint, steps, method, seed, execute = job
     torch.set_num_threads(1)
     placement = Placement()
     policy, ck = _policy(str(Path(model_dir) / CHECKPOINTS[checkpoint]))
@@ -88,13 +92,14 @@ def _episode(job: tuple) -> tuple[str, str, int, dict]:
         else:
             image = torch.zeros(1, 0)
         obs = (image, normalize_state(state, ck["stats"])[None])
-        out = norm.unnormalize(predict(policy, obs, steps, None, gen, placement))[0].numpy()
+        out = norm.unnormalize(predict(policy, obs, steps, method, gen, placement))[0].numpy()
         seconds.append(time.perf_counter() - t0)
         return out
 
     outcome = BENCHMARKS[env].sim().run_policy(plan, seed, execute, cfg.n_obs)
     outcome.pop("plans")
-    return str(model_dir), checkpoint, steps, {"seed": seed, **outcome, "ms": 1000.0 * float(np.median(seconds))}
+    label = Path(model_dir).name + (f" ({method})" if method not in (None, "ddpm") else "")
+    return label, checkpoint, steps, {"seed": seed, **outcome, "ms": 1000.0 * float(np.median(seconds))}
 
 
 def _reference(job: tuple) -> tuple[str, dict]:
@@ -159,6 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--models", nargs="+", type=Path, required=True)
     p.add_argument("--steps", nargs="+", type=int_range(1, 100), default=[2, 16],
                    help="sampling steps of the generative models (BC: its one prediction)")
+    p.add_argument("--dp-sampler", choices=DDPM.methods, default="ddpm",
+                   help="Diffusion Policy's sampler (default ddpm, leading timesteps as Diffusion Policy; "
+                   "ddim_trailing: deterministic, starting from the last timestep, the fair few-step choice)")
     p.add_argument("--episodes", type=POSITIVE, default=50, help="initial conditions (the seed: 500)")
     p.add_argument("--seed", type=NON_NEGATIVE, default=FIRST_SEED, help="the first initial condition")
     p.add_argument("--execute", type=int_range(1, 256), default=8, help="Ta: actions executed per plan")
@@ -176,14 +184,15 @@ def main(argv: list[str] | None = None) -> int:
     jobs = []
     for d in args.models:
         cfg = check_model(d, bench)
+        method = args.dp_sampler if MODELS[cfg["model"]][0] == "ddpm" else None
         for steps in ([1] if cfg["model"].startswith("bc_") else args.steps):
-            jobs += [(args.env, str(d), ck, steps, args.seed + i, args.execute) for ck in CHECKPOINTS
+            jobs += [(args.env, str(d), ck, steps, method, args.seed + i, args.execute) for ck in CHECKPOINTS
                      for i in range(args.episodes)]
     per: dict = {}
     ref_eps: dict = {}
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        for model_dir, ck, steps, episode in pool.map(_episode, jobs):
-            per.setdefault((Path(model_dir).name, steps), {}).setdefault(ck, []).append(episode)
+        for label, ck, steps, episode in pool.map(_episode, jobs):
+            per.setdefault((label, steps), {}).setdefault(ck, []).append(episode)
         ref_jobs = [(args.env, kind, args.seed + i) for kind in bench.sim().REFERENCES for i in range(args.episodes)]
         for kind, episode in pool.map(_reference, ref_jobs):
             ref_eps.setdefault(kind, []).append(episode)
