@@ -83,19 +83,19 @@ def train(kitchen_data: Path, out: Path, model: str, *extra: str) -> None:
 
 
 def test_state_only_policies_train_and_run_the_kitchen_benchmark(kitchen_data: Path, tmp_path: Path) -> None:
-    for model in ("fm_cnn", "bc_cnn"):
+    for model in ("fm_cnn", "dp_cnn", "bc_cnn"):
         train(kitchen_data, tmp_path / model, model, "--no-image")
     ck = torch.load(tmp_path / "fm_cnn" / "model.pt", weights_only=True)
     cfg = ck["config"]
     assert cfg["use_image"] is False and cfg["action_dim"] == 9 and cfg["state_dim"] == 2 * 59
     assert not any(k.startswith("encoder.") for k in ck["ema"])  # no image encoder at all
     out = tmp_path / "out"
-    run_module("benchmark", "--env", "kitchen", "--models", tmp_path / "fm_cnn", tmp_path / "bc_cnn", "--steps", "2",
-               "--episodes", "1", "--metrics", out / "m.json", "--details", out / "d.json", "--table", out / "t.md",
-               check=True)
+    run_module("benchmark", "--env", "kitchen", "--models", *(tmp_path / m for m in ("fm_cnn", "dp_cnn", "bc_cnn")),
+               "--steps", "2", "--dp-sampler", "ddim_trailing", "--episodes", "1", "--metrics", out / "m.json",
+               "--details", out / "d.json", "--table", out / "t.md", check=True)
     details = json.loads((out / "d.json").read_text())
     rows = {(r["model"], r["steps"]): r for r in details["results"]}
-    assert set(rows) == {("fm_cnn", 2), ("bc_cnn", 1)}
+    assert set(rows) == {("fm_cnn", 2), ("dp_cnn (ddim_trailing)", 2), ("bc_cnn", 1)}  # the sampler is named
     for r in rows.values():
         (e,) = r["per_episode"]["last"]
         assert e["seed"] == 100_000 and set(e["tasks"]) <= set(kitchen.TASKS)
