@@ -25,6 +25,17 @@ def run_module(module: str, *args: str, check: bool = False, timeout: float = 60
     return proc
 
 
+def record_seeded_world(root: Path, world: str, episodes: int, size: int, test_fraction: float) -> Path:
+    """A seeded benchmark world's demonstrations (initial conditions 0..episodes-1) recorded, ingested with
+    pipelines/<world>/topics.yaml into root/<world>.h5 and split into root/split.json."""
+    run_module("record", "--world", world, "--episodes", episodes, "--size", size, "--out", root / "bags", check=True)
+    run_module("ingest", *sorted((root / "bags").glob("*.mcap")), "-o", root / f"{world}.h5", "--size", size,
+               "--config", REPO / "pipelines" / world / "topics.yaml", check=True)
+    run_module("split", root / f"{world}.h5", "-o", root / "split.json", "--test-fraction", test_fraction,
+               check=True)
+    return root
+
+
 @pytest.fixture(scope="session")
 def mcap_bags(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     """One ROS2 MCAP episode of each of three tasks (64x64 camera at 5 Hz)."""

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import one_line_error, run_module
+from conftest import one_line_error, record_seeded_world, run_module
 
 from adlpipe.dataset import schema
 from adlpipe.geometry import project
@@ -51,12 +51,7 @@ def test_the_demonstrator_does_all_four_tasks_from_seed_0(env: object) -> None:
 def kitchen_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Three demonstrations (initial conditions 0-2) at 32 px, ingested with pipelines/kitchen's topic map and
     split 2 / 1."""
-    root = tmp_path_factory.mktemp("kitchen")
-    run_module("record", "--world", "kitchen", "--episodes", "3", "--size", "32", "--out", root / "bags", check=True)
-    run_module("ingest", *sorted((root / "bags").glob("*.mcap")), "-o", root / "kitchen.h5", "--size", "32",
-               "--config", Path(__file__).parents[1] / "pipelines" / "kitchen" / "topics.yaml", check=True)
-    run_module("split", root / "kitchen.h5", "-o", root / "split.json", "--test-fraction", "0.34", check=True)
-    return root
+    return record_seeded_world(tmp_path_factory.mktemp("kitchen"), "kitchen", 3, 32, 0.34)
 
 
 def test_kitchen_bags_carry_state_and_action_per_frame(kitchen_data: Path) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import one_line_error, run_module
+from conftest import one_line_error, record_seeded_world, run_module
 
 from adlpipe.dataset import schema
 from adlpipe.geometry import project
@@ -30,12 +30,7 @@ def test_the_demonstrator_pushes_the_t_onto_the_goal() -> None:
 
 @pytest.fixture(scope="module")
 def pusht_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("pusht")
-    run_module("record", "--world", "pusht", "--episodes", "4", "--size", "48", "--out", root / "bags", check=True)
-    run_module("ingest", *sorted((root / "bags").glob("*.mcap")), "-o", root / "pusht.h5", "--size", "48",
-               "--config", Path(__file__).parents[1] / "pipelines" / "pusht" / "topics.yaml", check=True)
-    run_module("split", root / "pusht.h5", "-o", root / "split.json", "--test-fraction", "0.25", check=True)
-    return root
+    return record_seeded_world(tmp_path_factory.mktemp("pusht"), "pusht", 4, 48, 0.25)
 
 
 def test_pusht_bags_carry_state_and_action_per_frame(pusht_data: Path) -> None:
