@@ -41,6 +41,7 @@ from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.models import MODELS
 from .policy.objectives import DDPM
 from .runtime import Placement
+from .sim.kitchen import TASKS as KITCHEN_TASKS
 
 FIRST_SEED = 100_000
 
@@ -52,6 +53,7 @@ class Benchmark:
     action_dim: int
     images: bool  # the seed's policies see images (Push-T) or the state alone (Franka Kitchen)
     protocol: str  # what the table's score and success mean
+    tasks: tuple[str, ...] = ()  # subtasks whose success rates the table gives (Franka Kitchen's four)
 
     def sim(self) -> ModuleType:
         return importlib.import_module(f"adlpipe.sim.{self.module}")
@@ -63,7 +65,7 @@ BENCHMARKS = {
                        "success: coverage above 0.95."),
     "kitchen": Benchmark("kitchen", "Franka Kitchen", 9, False,
                          "at most 280 steps. Score: the mean share of the four tasks done (microwave, kettle, light "
-                         "switch, slide cabinet); success: all four."),
+                         "switch, slide cabinet); success: all four.", KITCHEN_TASKS),
 }
 
 
@@ -107,14 +109,12 @@ def _reference(job: tuple) -> tuple[str, dict]:
     return kind, {"seed": seed, **BENCHMARKS[env].sim().reference(kind, seed)}
 
 
-def summary(episodes: list[dict]) -> dict:
-    """The mean score and success rate of a set of episodes (Franka Kitchen: also each task's success rate)."""
+def summary(episodes: list[dict], tasks: tuple[str, ...] = ()) -> dict:
+    """The mean score and success rate of a set of episodes, and each of `tasks`' success rate."""
     out = {"score": float(np.mean([e["score"] for e in episodes])),
            "success": float(np.mean([e["success"] for e in episodes]))}
-    if "tasks" in episodes[0]:
-        from .sim.kitchen import TASKS
-
-        out["tasks"] = {t: float(np.mean([t in e["tasks"] for e in episodes])) for t in TASKS}
+    if tasks:
+        out["tasks"] = {t: float(np.mean([t in e["tasks"] for e in episodes])) for t in tasks}
     return out
 
 
@@ -137,12 +137,10 @@ def _tasks_cell(r: dict) -> str:
 
 
 def table(bench: Benchmark, rows: dict, refs: dict, episodes: int, execute: int, first_seed: int) -> str:
-    per_task = bench.module == "kitchen"
+    per_task = bool(bench.tasks)
     head = "| model | steps | score best / last | success best / last | ms per plan |"
     if per_task:
-        from .sim.kitchen import TASKS
-
-        head += f" last: {' / '.join(TASKS)} |"
+        head += f" last: {' / '.join(bench.tasks)} |"
     lines = [f"# {bench.title}, closed loop (the seed's Table 2 setting)", "",
              f"{episodes} seeded initial conditions (seeds {first_seed}..), Ta = {execute}, {bench.protocol} "
              "best: the checkpoint with the lowest validation error; last: the final one (the seed reports the max "
@@ -196,9 +194,9 @@ def main(argv: list[str] | None = None) -> int:
         ref_jobs = [(args.env, kind, args.seed + i) for kind in bench.sim().REFERENCES for i in range(args.episodes)]
         for kind, episode in pool.map(_reference, ref_jobs):
             ref_eps.setdefault(kind, []).append(episode)
-    refs = {k: summary(eps) for k, eps in ref_eps.items()}
-    rows = {key: {ck: {**summary(eps), "ms": float(np.median([e["ms"] for e in eps]))} for ck, eps in by_ck.items()}
-            for key, by_ck in per.items()}
+    refs = {k: summary(eps, bench.tasks) for k, eps in ref_eps.items()}
+    rows = {key: {ck: {**summary(eps, bench.tasks), "ms": float(np.median([e["ms"] for e in eps]))}
+                  for ck, eps in by_ck.items()} for key, by_ck in per.items()}
     headline = {f"{m}/{s}": {"score_best": round(r["best"]["score"], 3), "score_last": round(r["last"]["score"], 3),
                              "success_last": round(r["last"]["success"], 3)} for (m, s), r in rows.items()}
     write_all_atomic({

@@ -184,7 +184,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     if horizon != cfg.horizon and not cfg.closed_loop:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
     train_names, val_names = split_validation(tasks, val_fraction, seed)
-    aug = Augment(stored_size) if augment and cfg.use_image else None
+    aug = Augment(stored_size) if augment else None  # windows without images skip it
     stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed)
     norm = Normalizer(stats)
     val_obs, val_px_target = None, None

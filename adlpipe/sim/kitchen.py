@@ -411,8 +411,8 @@ def run_policy(plan: Callable[[None, np.ndarray], np.ndarray], seed: int, execut
     try:
         history = [reset(env, seed)] * n_obs
         done_tasks: set[str] = set()
-        plans, steps = 0, 0
-        while steps < max_steps:
+        plans, steps, done = 0, 0, False
+        while steps < max_steps and not done:
             actions = np.asarray(plan(None, np.stack(history)))
             plans += 1
             for a in actions[:execute]:
@@ -421,7 +421,7 @@ def run_policy(plan: Callable[[None, np.ndarray], np.ndarray], seed: int, execut
                 done_tasks |= completed(info)
                 steps += 1
                 if done or steps >= max_steps:
-                    return {**_outcome(done_tasks), "plans": plans}
+                    break
         return {**_outcome(done_tasks), "plans": plans}
     finally:
         env.close()
