@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     jobs = []
     for d in args.models:
         cfg = check_model(d, bench)
-        method = args.dp_sampler if MODELS[cfg["model"]][0] == "ddpm" else None
+        method = args.dp_sampler if MODELS[cfg["model"]][0].startswith("ddpm") else None
         for steps in ([1] if cfg["model"].startswith("bc_") else args.steps):
             jobs += [(args.env, str(d), ck, steps, method, args.seed + i, args.execute) for ck in CHECKPOINTS
                      for i in range(args.episodes)]

@@ -2,8 +2,11 @@
 
     python -m adlpipe.train --model fm_cnn --data data/adl.h5 --split data/split.json --out models/fm_cnn
 
-AdamW (weight decay 1e-6), cosine schedule with linear warm-up, EMA weights (used for the losses, validation and
-inference). A validation part of the train split (--val-fraction, stratified per task, seeded) is held out; every
+Diffusion Policy's optimiser settings for every model alike: AdamW (betas 0.95/0.999, weight decay 1e-6), cosine
+schedule after 500 linear warm-up steps, EMA weights (decay capped at 0.9999; used for the losses, validation and
+inference). Gradients are clipped at norm 1 for every model alike (--grad-clip 0: none, as Diffusion Policy at its lr
+of 1e-4; the small preset trains at 1e-3); README measures that the clip favours no objective.
+A validation part of the train split (--val-fraction, stratified per task, seeded) is held out; every
 --val-every epochs the EMA policy's val px (mean per-waypoint pixel error with the model's default sampler: FM 1
 Euler step, DP 16 DDPM steps, BC direct) is measured, and the best EMA weights are kept in best.pt beside the last
 ones in model.pt. A model whose best val px still fell by more than 2 % over the last fifth of training is marked
@@ -17,8 +20,9 @@ plain values: they load with torch.load(weights_only=True).
 Training augments (a random shift of the image stack with the pixel targets moved alike, colour jitter); --no-augment
 turns it off; validation and test never augment. --closed-loop trains on every frame (adlpipe.dataset.loader
 .WindowDataset): To frames and the end effector's position at each in, the next Tp waypoints at a fixed rate out,
-relative to the end effector now. An epoch draws one random window per training episode, so a closed-loop model
-takes the same optimiser steps as a first-frame one. --target action learns the bags' action stream from their
+relative to the end effector now. An epoch draws as many windows as there are training episodes, uniformly over
+every frame of every episode, so a closed-loop model takes the same optimiser steps as a first-frame one.
+--target action learns the bags' action stream from their
 state stream (val px is then the action's error in its own units); --no-image drops the image encoder, so the state
 alone conditions the model (the seed's Franka Kitchen setting).
 """
@@ -57,7 +61,7 @@ from .lock import exclusive
 from .policy.checkpoint import load_checkpoint, save_atomic
 from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, Observation, Policy, preset
 from .policy.objectives import Noise
-from .policy.optim import EMA, cosine_with_warmup
+from .policy.optim import ADAMW_BETAS, EMA, WARMUP_STEPS, cosine_with_warmup
 from .runtime import (
     Ranks,
     add_device_args,
@@ -151,7 +155,7 @@ def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], 
         def windows(names: list[str], **kw: object) -> WindowDataset:
             return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, **kw)
 
-        return (stats, windows(train_names, augment=aug, per_episode=True),
+        return (stats, windows(train_names, augment=aug, draws_per_epoch=len(train_names)),
                 windows(split["test"] or train_names, frames_per_episode=2),
                 windows(val_names, frames_per_episode=4) if val_names else None)
     stats = compute_stats(str(data), train_names)
@@ -164,7 +168,8 @@ def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], 
 
 
 def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
-          lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = 50, seed: int = 0,
+          lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = WARMUP_STEPS, grad_clip: float = 1.0,
+          seed: int = 0,
           log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
           val_fraction: float = 0.1, val_every: int = 5, augment: bool = True, workers: int = 0,
           device: torch.device | None = None, precision: str = "fp32", ranks: Ranks | None = None) -> dict:
@@ -200,14 +205,15 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
                              sampler=EpochSampler(len(test_ds), shuffle=False), num_workers=0)
     steps_per_epoch = len(loader)
     hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
-               "warmup_steps": warmup_steps, "seed": seed, "data": str(data), "split": sorted(split["train"]),
+               "warmup_steps": warmup_steps, "grad_clip": grad_clip, "seed": seed, "data": str(data),
+               "split": sorted(split["train"]),
                "val_fraction": val_fraction, "val_every": val_every, "augment": augment}
 
     torch.manual_seed(seed)
     policy = Policy(cfg).to(device)
     model = DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None) \
         if ranks.world > 1 else policy  # averages the gradients over the processes in backward
-    opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=weight_decay)
+    opt = torch.optim.AdamW(policy.parameters(), lr=lr, betas=ADAMW_BETAS, weight_decay=weight_decay)
     sched = cosine_with_warmup(opt, warmup_steps, epochs * steps_per_epoch)
     ema = EMA(policy)
     history: list[dict] = []
@@ -243,7 +249,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
                 loss = model(obs, act, Noise(eps, u))
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+            grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), grad_clip or math.inf)
             if not torch.isfinite(grad_norm):  # the same on every process (synchronised gradients): all stop here,
                 # before the weights or last.pt take the NaN
                 raise AdlError(f"{cfg.model}: training diverged (loss {float(loss.detach())}, gradient norm "
@@ -315,7 +321,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lr", type=float_range(0, 1, lo_open=True),
                    help="AdamW learning rate (default: the preset's, small 1e-3, paper 1e-4)")
     p.add_argument("--weight-decay", type=float_range(0, 1), default=1e-6)
-    p.add_argument("--warmup-steps", type=NON_NEGATIVE, default=50)
+    p.add_argument("--warmup-steps", type=NON_NEGATIVE, default=WARMUP_STEPS,
+                   help=f"linear learning-rate warm-up (default {WARMUP_STEPS}, Diffusion Policy's)")
+    p.add_argument("--grad-clip", type=float_range(0, 1e6), default=1.0,
+                   help="clip the gradient norm at this (default 1; 0: no clipping, as Diffusion Policy at lr 1e-4)")
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument("--threads", type=NON_NEGATIVE, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument("--log", type=Path, help="per-epoch CSV for dvc plots (default: <out>/log.csv)")
@@ -378,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
                     (out / name).unlink(missing_ok=True)
             barrier(ranks)  # no process reads a checkpoint that --restart is about to remove
             m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay,
-                      args.warmup_steps, args.seed, args.log or out / "log.csv", progress=True,
+                      args.warmup_steps, args.grad_clip, args.seed, args.log or out / "log.csv", progress=True,
                       val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment,
                       workers=args.workers, device=device, precision=args.precision, ranks=ranks)
     if not ranks.main:

@@ -157,19 +157,21 @@ def test_windows_cover_every_frame_with_padding(windows: WindowDataset, ingested
         assert np.all(np.asarray(stats["min"]) < target.min(0)) and np.all(target.max(0) < np.asarray(stats["max"]))
 
 
-def test_per_episode_sampling_draws_one_seeded_frame_per_episode(ingested: Path) -> None:
+def test_training_windows_are_drawn_uniformly_over_every_frame(ingested: Path) -> None:
     names = _names(ingested)
     stats = compute_stats(str(ingested), names)
-    ds = WindowDataset(ingested, names, stats, 32, Windows(), per_episode=True, seed=3)
-    assert len(ds) == len(names)
+    ds = WindowDataset(ingested, names, stats, 32, Windows(), draws_per_epoch=len(names), seed=3)
+    assert len(ds) == len(names)  # as many optimiser steps per epoch as a first-frame model
+    total = len(ds.items)
+    assert total > 4 * len(names)
     first = [ds.window(i) for i in range(len(ds))]
-    assert [e for e, _ in first] == list(range(len(names)))
-    assert first == [ds.window(i) for i in range(len(ds))]  # the same epoch: the same frames (resumable)
-    picks = set()
-    for epoch in range(8):
-        ds.epoch = epoch
-        picks.add(ds.window(0)[1])
-    assert len(picks) > 2
+    assert first == [ds.window(i) for i in range(len(ds))]  # the same epoch: the same windows (resumable)
+    epochs = -(-total // len(names))  # enough epochs for one pass over every window
+    seen = [ds.window(i, epoch) for epoch in range(epochs) for i in range(len(ds))]
+    assert set(seen[:total]) == set(ds.items)  # one pass: every window exactly once, before any repeats
+    assert len(set(seen[:total])) == total
+    per_episode = np.bincount([e for e, _ in seen[:total]], minlength=len(names))
+    assert per_episode.tolist() == ds.lengths.tolist()  # long episodes weigh as many windows as they have
 
 
 def test_augmentation_moves_the_pixel_targets_with_the_image() -> None:

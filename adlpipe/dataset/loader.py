@@ -254,19 +254,22 @@ class WindowDataset(Dataset):
     each, target the next Tp waypoints (u, v, x, y, z) at a fixed rate relative to the current end effector, the
     last pose repeated after the end, normalised with compute_window_stats.
 
-    per_episode: an epoch draws one random frame of each episode (seeded by epoch and episode), so a closed-loop
-    model takes as many optimiser steps per epoch as a first-frame one; otherwise every frame is an item, or
-    `frames_per_episode` evenly spaced ones (a fixed validation or test set)."""
+    draws_per_epoch: an epoch is this many windows drawn uniformly over every frame of every episode (one seeded
+    permutation of all windows per pass, continued from epoch to epoch, so each window is seen once before any is
+    seen again); the training set passes the number of episodes, so a closed-loop model takes as many optimiser steps
+    per epoch as a first-frame one. Otherwise every frame is an item, or `frames_per_episode` evenly spaced ones (a
+    fixed validation or test set)."""
 
     def __init__(self, index: str | Path, names: list[str], stats: dict, image_size: int, windows: Windows,
-                 use_depth: bool = False, augment: Augment | None = None, per_episode: bool = False,
+                 use_depth: bool = False, augment: Augment | None = None, draws_per_epoch: int | None = None,
                  frames_per_episode: int | None = None, seed: int = 0) -> None:
         # A fixed set (validation, test loss) without augmentation is kept in memory when small; training windows
         # and large sets stream.
         self.names, self.w = list(names), windows
         self.stats, self.norm = stats, Normalizer(stats)
         self.image_size, self.use_depth, self.augment = image_size, use_depth, augment
-        self.per_episode, self.seed, self.epoch = per_episode, seed, 0
+        self.draws, self.seed, self.epoch = draws_per_epoch, seed, 0
+        self._perm: tuple[int, np.ndarray] = (-1, np.zeros(0, int))  # (pass, permutation of all windows)
         self.files = _EpisodeFiles(str(index), self.names)
         self._metas: dict[int, dict] = {}
         self._cached: dict[int, tuple] = {}
@@ -283,13 +286,18 @@ class WindowDataset(Dataset):
         self.cache = bool(frames_per_episode) and augment is None and len(self.items) <= MAX_CACHED_WINDOWS
 
     def __len__(self) -> int:
-        return len(self.names) if self.per_episode else len(self.items)
+        return self.draws if self.draws else len(self.items)
 
     def window(self, i: int, epoch: int | None = None) -> tuple[int, int]:
-        if not self.per_episode:
+        """(episode, frame) of item i in `epoch`: fixed, or (draws_per_epoch) position epoch * draws + i of the
+        concatenated seeded permutations of all windows."""
+        if not self.draws:
             return self.items[i]
-        rng = np.random.default_rng([self.seed, self.epoch if epoch is None else epoch, i])
-        return i, int(rng.integers(self.lengths[i]))
+        pos = (self.epoch if epoch is None else epoch) * self.draws + i
+        n_pass, k = divmod(pos, len(self.items))
+        if self._perm[0] != n_pass:
+            self._perm = (n_pass, np.random.default_rng([self.seed, n_pass, 3]).permutation(len(self.items)))
+        return self.items[int(self._perm[1][k])]
 
     def _meta(self, e: int) -> dict:
         """An episode's small arrays (stamps, end-effector series, camera, affordance maps and sync indices), read
@@ -360,7 +368,7 @@ class WindowDataset(Dataset):
         return self.item(i, self.epoch)
 
     def item(self, i: int, epoch: int) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
-        """Item i as epoch `epoch` draws (per_episode) and augments it."""
+        """Item i as epoch `epoch` draws (draws_per_epoch) and augments it."""
         if i in self._cached:
             return self._cached[i]
         e, k = self.window(i, epoch)

@@ -5,11 +5,14 @@
     fm_transformer   flow matching (clean-trajectory prediction), transformer denoiser
     mf_cnn           MeanFlow (average velocity, clean-trajectory output), same U-Net     (one step, mode-committing)
     mf_transformer   MeanFlow, transformer denoiser
-    dp_cnn           Diffusion Policy: DDPM, epsilon prediction, same U-Net
+    dp_cnn           Diffusion Policy: DDPM, clean-sample prediction, same U-Net   (FM-x1's like-for-like pair)
+    dp_cnn_epsilon   Diffusion Policy: DDPM, noise (epsilon) prediction, same U-Net (the paper's pair of FM-velocity)
     bc_cnn           behaviour cloning, MSE, same U-Net fed a constant input (x = 0, t = 0)
     bc_transformer   behaviour cloning, MSE, transformer regressor                       (the paper's BC)
 
-FM-CNN, DP-CNN and BC-CNN differ only by their objective; FM-Transformer vs BC-Transformer is the paper's pair.
+FM-CNN, DP-CNN and BC-CNN differ only by their objective (FM and DP both output the clean trajectory);
+FM-CNN-velocity vs DP-CNN-epsilon is the paper's pair (both output a velocity or noise); FM-Transformer vs
+BC-Transformer is the paper's transformer pair.
 """
 
 from __future__ import annotations
@@ -32,12 +35,14 @@ MODELS = {  # name -> (objective, network)
     "mf_cnn": ("meanflow", "unet"),
     "mf_transformer": ("meanflow", "transformer"),
     "dp_cnn": ("ddpm", "unet"),
+    "dp_cnn_epsilon": ("ddpm_epsilon", "unet"),
     "bc_cnn": ("mse", "unet_regressor"),
     "bc_transformer": ("mse", "transformer_regressor"),
 }
 # Each objective's default sampler and step count: what validation selects on, replay runs and the report compares.
-DEFAULT_METHOD = {"fm": "euler", "fm_velocity": "euler", "meanflow": "euler", "ddpm": "ddpm", "mse": "direct"}
-DEFAULT_STEPS = {"fm": 1, "fm_velocity": 1, "meanflow": 1, "ddpm": 16, "mse": 1}
+DEFAULT_METHOD = {"fm": "euler", "fm_velocity": "euler", "meanflow": "euler", "ddpm": "ddpm", "ddpm_epsilon": "ddpm",
+                  "mse": "direct"}
+DEFAULT_STEPS = {"fm": 1, "fm_velocity": 1, "meanflow": 1, "ddpm": 16, "ddpm_epsilon": 16, "mse": 1}
 
 
 @dataclass(frozen=True)
@@ -101,6 +106,8 @@ def preset(name: str, model: str, **overrides: object) -> ModelConfig:
 def make_objective(kind: str) -> FlowMatching | MeanFlow | DDPM | MSERegression:
     if kind == "fm_velocity":
         return FlowMatching("velocity")
+    if kind == "ddpm_epsilon":
+        return DDPM(prediction="epsilon")
     return {"fm": FlowMatching, "meanflow": MeanFlow, "ddpm": DDPM, "mse": MSERegression}[kind]()
 
 

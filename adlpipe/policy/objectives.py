@@ -7,8 +7,10 @@ dx/dt = v from t=0 to 1 with Euler, midpoint or RK4 in 1..16 steps. Two paramete
     x1_hat exactly, so the network never has to cancel its input noise through GroupNorm/Mish layers.
   - "velocity" (the paper's): the network predicts v directly, trained with MSE to x1 - x0.
 The flow time is fed to the sinusoidal embedding scaled by TIME_SCALE (t*100), the range of the diffusion steps.
-DDPM: 100 training steps, squaredcos_cap_v2 betas, epsilon prediction; sampled by DDPM (ancestral) or DDIM
-(eta=0). Timestep spacing "leading" (diffusers' default, what Diffusion Policy uses: 16 steps = 90, 84, ..., 0) or
+DDPM: 100 training steps, squaredcos_cap_v2 betas; the network predicts the clean sample ("sample", Diffusion
+Policy's `prediction_type: sample`, the like-for-like partner of FM's "x1") or the noise ("epsilon", its default
+and the paper's); sampled by DDPM (ancestral) or DDIM (eta=0).
+Timestep spacing "leading" (diffusers' default, what Diffusion Policy uses: 16 steps = 90, 84, ..., 0) or
 "trailing" (16 steps = 99, 93, ..., 5; the first step starts from pure noise, which few-step sampling needs).
 MeanFlow (Geng et al. 2025): the network gives the average velocity u(x_t, t, s) over [t, s], trained with the
 MeanFlow identity u = v + (s - t) du/dt (the total derivative along the flow, one forward-mode JVP); one step from
@@ -170,11 +172,15 @@ def squaredcos_cap_v2(n: int, max_beta: float = 0.999) -> torch.Tensor:
 class DDPM:
     methods = ("ddpm", "ddim", "ddpm_trailing", "ddim_trailing")  # the suffix overrides the spacing
     spacings = ("leading", "trailing")
+    predictions = ("sample", "epsilon")
 
-    def __init__(self, train_steps: int = 100, clip_sample: bool = True, spacing: str = "leading") -> None:
+    def __init__(self, train_steps: int = 100, clip_sample: bool = True, spacing: str = "leading",
+                 prediction: str = "sample") -> None:
         if spacing not in self.spacings:
             raise ValueError(f"unknown timestep spacing {spacing!r}; use one of {self.spacings}")
-        self.spacing = spacing
+        if prediction not in self.predictions:
+            raise ValueError(f"unknown diffusion prediction {prediction!r}; use one of {self.predictions}")
+        self.spacing, self.prediction = spacing, prediction
         self.n = train_steps
         self.betas = squaredcos_cap_v2(train_steps)
         self.abar = torch.cumprod(1 - self.betas, 0)
@@ -184,7 +190,7 @@ class DDPM:
         k = (noise.u[:, 0] * self.n).long().clamp(max=self.n - 1)  # a uniform diffusion step in 0..n-1
         a = self.abar.to(x1.device, torch.float32)[k][:, None, None]
         xk = a.sqrt() * x1 + (1 - a).sqrt() * noise.eps
-        return F.mse_loss(net(xk, k.float(), cond), noise.eps)
+        return F.mse_loss(net(xk, k.float(), cond), x1 if self.prediction == "sample" else noise.eps)
 
     def timesteps(self, steps: int, spacing: str | None = None) -> list[int]:
         """'leading' (diffusers' default): steps=16 -> [90, 84, ..., 0], steps=1 -> [0];
@@ -208,8 +214,9 @@ class DDPM:
         for i, t in enumerate(ts):
             prev = ts[i + 1] if i + 1 < len(ts) else -1
             a_t, a_prev = abar[t], (abar[prev] if prev >= 0 else 1.0)
-            eps = net(x, torch.full((shape[0],), float(t), device=x.device), cond)
-            x0 = (x - math.sqrt(1 - a_t) * eps) / math.sqrt(a_t)
+            out = net(x, torch.full((shape[0],), float(t), device=x.device), cond)
+            # epsilon: the clean-sample estimate divides the noise error by sqrt(abar_t) (5e-4 at t = 99)
+            x0 = out if self.prediction == "sample" else (x - math.sqrt(1 - a_t) * out) / math.sqrt(a_t)
             if self.clip:
                 x0 = x0.clamp(-1, 1)
             if method == "ddim":

@@ -8,8 +8,17 @@ import math
 
 import torch
 
+# Diffusion Policy's optimiser settings, used for every model alike (N): AdamW betas (0.95, 0.999), 500 warm-up steps,
+# EMA capped at 0.9999, no gradient clipping.
+ADAMW_BETAS = (0.95, 0.999)
+WARMUP_STEPS = 500
+
 
 def cosine_with_warmup(opt: torch.optim.Optimizer, warmup: int, total: int) -> torch.optim.lr_scheduler.LambdaLR:
+    """Linear warm-up over `warmup` steps (at most half the run: a tiny test run still reaches its lr), then cosine
+    decay to zero at `total`."""
+    warmup = min(warmup, total // 2)
+
     def f(step: int) -> float:
         if step < warmup:
             return (step + 1) / warmup
@@ -21,9 +30,10 @@ def cosine_with_warmup(opt: torch.optim.Optimizer, warmup: int, total: int) -> t
 
 class EMA:
     """Exponential moving average of the weights with Diffusion Policy's warm-up: decay = 1 - (1 + step/1)^-0.75,
-    capped at max_decay, so early averages are not dominated by the random initialisation."""
+    capped at max_decay (Diffusion Policy's 0.9999), so early averages are not dominated by the random
+    initialisation."""
 
-    def __init__(self, model: torch.nn.Module, max_decay: float = 0.999) -> None:
+    def __init__(self, model: torch.nn.Module, max_decay: float = 0.9999) -> None:
         self.model = copy.deepcopy(model).eval().requires_grad_(False)
         self.max_decay = max_decay
         self.step = 0
