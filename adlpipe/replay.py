@@ -36,7 +36,14 @@ from tqdm import tqdm
 from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
 from .dataset import schema
-from .dataset.loader import Normalizer, normalize_state, observation, observation_from_arrays
+from .dataset.loader import (
+    Normalizer,
+    anchor_series,
+    normalize_state,
+    observation,
+    observation_from_arrays,
+    relative_waypoints,
+)
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS, load_policy
@@ -44,39 +51,94 @@ from .policy.inference import predict
 from .runtime import Placement, add_device_args
 
 
-def _replay_one(job: tuple) -> tuple[str, str, str, bool]:
+def _replay_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     from .sim.episode import replay_trajectory, spec_from_objects
 
     label, name, task, names, objects, traj3d, duration = job
     spec = spec_from_objects(task, names, objects)
     ok, _ = replay_trajectory(spec, traj3d, duration)
-    return label, name, task, ok
+    return label, name, task, ok, {}
 
 
-def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool]:
-    """Closed-loop replay of one episode with one model (runs in a pool process: loads the model itself)."""
+def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
+    """Closed-loop replay of one episode with one model, or with the oracle (runs in a pool process: loads the
+    model itself). The oracle's plans are the demonstration's own future waypoints in the model's target format,
+    normalised with its statistics: they take exactly the path a prediction takes from here on."""
     from .sim.episode import replay_closed_loop, spec_from_objects
 
-    label, model_dir, checkpoint, ep, camera_hz, steps, execute, seed, placement = job
+    label, model_dir, checkpoint, ep, camera_hz, steps, execute, seed, placement, oracle = job
+    target = oracle[0] if oracle is not None else None
     torch.set_num_threads(1)
     policy, ck = load_policy(Path(model_dir) / checkpoint, placement)
     cfg = policy.cfg
     norm = Normalizer(ck["stats"])
     gen = placement.generator(seed)
+    state_dim = cfg.state_dim // cfg.n_obs  # 4: tcp and gripper (3: a model trained before the gripper joined)
 
-    def plan(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
+    def predict_normalised(frames: list, elapsed: float) -> torch.Tensor:
+        if oracle is not None:
+            _, series_t, series_p = oracle
+            now = np.array([[np.interp(elapsed, series_t, series_p[:, d]) for d in range(3)]])
+            rel = relative_waypoints(np.array([elapsed]), now, series_t, series_p, cfg.horizon, cfg.rate_hz,
+                                     ep.K, ep.T_base_camera)
+            return norm.normalize(torch.from_numpy(rel))
         image = np.concatenate([observation_from_arrays(rgb, ep.affordance, depth, cfg.image_size, cfg.use_depth)
-                                for rgb, depth, _ in frames])
-        obs = torch.from_numpy(image)[None]
-        state = np.stack([tcp for _, _, tcp in frames])
-        obs = (obs, normalize_state(state, ck["stats"])[None])
-        pred = norm.unnormalize(predict(policy, obs, steps, None, gen, placement))
-        return pred[0, :, 2:].numpy() + state[-1]  # waypoints relative to the end effector now
+                                for rgb, depth, _, _ in frames])
+        state = np.stack([np.append(tcp, grip) for _, _, tcp, grip in frames])[:, :state_dim]
+        obs = (torch.from_numpy(image)[None], normalize_state(state, ck["stats"])[None])
+        return predict(policy, obs, steps, None, gen, placement)
+
+    def plan(frames: list, elapsed: float) -> np.ndarray:
+        """Offsets (Tp, 3) from the anchor, in metres: the unnormalised prediction's x, y, z."""
+        return norm.unnormalize(predict_normalised(frames, elapsed))[0, :, 2:].numpy()
 
     spec = spec_from_objects(ep.task, ep.object_names, ep.objects)
-    ok, _ = replay_closed_loop(spec, plan, ep.duration_s, cfg.rate_hz, execute, cfg.n_obs, ep.rgb.shape[0],
-                               camera_hz)
-    return label, ep.name, ep.task, ok
+    run = replay_closed_loop(spec, plan, ep.duration_s, cfg.rate_hz, execute, cfg.n_obs, ep.rgb.shape[0], camera_hz,
+                             anchor="measured" if (target or cfg.target) == "ee" else "command")
+    demo_len = float(np.linalg.norm(np.diff(ep.ee_pos, axis=0), axis=1).sum())
+    diag = {"failed": [k for k, ok in run.checks.items() if not ok],
+            "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - ep.ee_pos[-1])), 2),
+            "path_ratio": round(float(np.linalg.norm(np.diff(run.tcp_path, axis=0), axis=1).sum()) / demo_len, 3)}
+    return label, ep.name, ep.task, run.success, diag
+
+
+def oracle_jobs(model_dir: Path, checkpoint: str, data: Path, eps: list, rates: list[float], formats: list[str],
+                execute: list[int], placement: Placement) -> list[tuple]:
+    """Closed-loop jobs whose plans are each test demonstration's own future waypoints, in `model_dir`'s target
+    format (horizon, rate, statistics) with the anchor of each format: "command" relative to the last command,
+    "ee" relative to the measured tcp (the executor's ceiling for policies trained on each)."""
+    cfg = load_policy(model_dir / checkpoint)[0].cfg
+    jobs = []
+    with schema.open_dataset(data, [ep.name for ep in eps]) as f:
+        series = {fmt: [anchor_series(f[schema.EPISODES][ep.name], fmt, f"{ep.source_path}")[:2] for ep in eps]
+                  for fmt in formats}
+    for fmt in formats:
+        for ta in execute:
+            if ta > cfg.horizon:
+                raise AdlError(f"--closed-loop {ta}: {model_dir} predicts only {cfg.horizon} waypoints")
+            jobs += [(f"oracle-{fmt}/Ta-{ta}", str(model_dir), checkpoint, ep, rate, 1, ta, 0, placement, (fmt, *s))
+                     for ep, rate, s in zip(eps, rates, series[fmt], strict=True)]
+    return jobs
+
+
+def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str, dict[str, bool]]) -> str:
+    """Where closed-loop rollouts fail: per policy, how many failed rollouts missed each part of the predicate,
+    and how far the last command ended from the demonstration's end (median, cm) and how much of the
+    demonstration's path length the arm travelled (median), failed rollouts only."""
+    parts = ["force", "touches", "stroke", "dwell", "placed"]
+    lines = ["\n## Where the failed rollouts fail\n",
+             "Failed rollouts per missed part of the predicate (a rollout may miss several); end error: the last "
+             "command from the demonstration's end; path: the arm's path length over the demonstration's "
+             "(medians over the failed rollouts).\n",
+             "| policy | failed | " + " | ".join(parts) + " | end error cm | path |",
+             "| --- | ---: |" + " ---: |" * (len(parts) + 2)]
+    for label, diags in diagnostics.items():
+        bad = [d for name, d in diags.items() if not per_episode[label].get(name, False)]
+        counts = " | ".join(str(sum(p in d["failed"] for d in bad)) for p in parts)
+        err = f"{np.median([d['end_error_cm'] for d in bad]):.1f}" if bad else "-"
+        path = f"{np.median([d['path_ratio'] for d in bad]):.2f}" if bad else "-"
+        lines.append(f"| {label} | {len(bad)} of {len(diags)} | {counts} | {err} | {path} |")
+    return "\n".join(lines) + "\n"
 
 
 def every_task_first(data: Path, names: list[str], n: int) -> list[str]:
@@ -154,6 +216,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--closed-loop", type=POSITIVE, metavar="TA", nargs="+",
                    help="closed loop, for models trained with train --closed-loop: execute TA of the predicted "
                    "waypoints, then re-plan from new camera frames; several TA values are a sweep (e.g. 4 8 16)")
+    p.add_argument("--oracle", nargs="+", choices=["command", "ee"],
+                   help="closed loop: also run each test demonstration's own future waypoints as plans, in the first "
+                   "model's format (its horizon, rate and statistics) anchored as a policy of that target is: "
+                   "command (relative to the last command) or ee (relative to the measured tcp); the executor's "
+                   "ceiling")
     p.add_argument("--metrics", type=Path, default=Path("metrics/replay.json"), help="overall success per policy")
     p.add_argument("--details", type=Path, default=Path("metrics/replay_details.json"), help="success per task")
     p.add_argument("--table", type=Path, default=Path("reports/table2.md"))
@@ -185,12 +252,15 @@ def main(argv: list[str] | None = None) -> int:
             raise AdlError("--closed-loop needs --models")
         worker = _closed_loop_one
         jobs = []
+        if args.oracle:
+            jobs += oracle_jobs(args.models[0], checkpoint, args.data, eps, rates, args.oracle, args.closed_loop,
+                                placement)
         for d in args.models:
             policy = load_policy(d / checkpoint)[0]
             if not policy.cfg.closed_loop:
                 raise AdlError(f"{d}: trained on first frames only; closed loop needs a model trained with "
                                "python -m adlpipe.train --closed-loop")
-            if policy.cfg.target != "ee":
+            if policy.cfg.target == "action":
                 raise AdlError(f"{d}: predicts the bags' action stream, not end-effector waypoints; run it with "
                                "python -m adlpipe.benchmark (Push-T)")
             for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
@@ -198,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
                     if ta > policy.cfg.horizon:
                         raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
                     label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}"
-                    jobs += [(label, str(d), checkpoint, ep, rate, steps, ta, args.seed, placement)
+                    jobs += [(label, str(d), checkpoint, ep, rate, steps, ta, args.seed, placement, None)
                              for ep, rate in zip(eps, rates, strict=True)]
     else:
         worker = _replay_one
@@ -210,13 +280,16 @@ def main(argv: list[str] | None = None) -> int:
                 for label, traj in trajs.items() for i, ep in enumerate(eps)]
     wins: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     per_episode: dict[str, dict[str, bool]] = defaultdict(dict)
+    diagnostics: dict[str, dict[str, dict]] = defaultdict(dict)
     # CUDA cannot be used in a forked child of a process that has used it: closed-loop workers on a GPU are spawned
     context = multiprocessing.get_context("spawn") if placement.device.type == "cuda" else None
     with ProcessPoolExecutor(max_workers=max(1, args.workers), mp_context=context) as pool:
-        for label, name, task, ok in tqdm(pool.map(worker, jobs, chunksize=4), total=len(jobs), desc="replay",
-                                          unit="ep", file=sys.stderr, disable=None):
+        for label, name, task, ok, diag in tqdm(pool.map(worker, jobs, chunksize=4), total=len(jobs),
+                                                desc="replay", unit="ep", file=sys.stderr, disable=None):
             wins[label][task].append(ok)
             per_episode[label][name] = bool(ok)
+            if diag:
+                diagnostics[label][name] = diag
     result = {}
     for label, per in wins.items():
         every = [o for v in per.values() for o in v]
@@ -231,13 +304,15 @@ def main(argv: list[str] | None = None) -> int:
             else "open-loop")
     title = (f"# Success rate (%) of {mode} execution in MuJoCo, test split, {args.checkpoint} checkpoints\n\n"
              "Success: the task's predicate, with any contact force on the manikin above 20 N a failure.\n\n")
+    failures = failure_table(diagnostics, per_episode) if diagnostics else ""
     write_all_atomic({
         args.details: json_text({"episodes": len(eps), "checkpoint": args.checkpoint, "success": result,
                                  "tasks": {ep.name: ep.task for ep in eps}, "per_episode": per_episode,
+                                 "diagnostics": diagnostics,
                                  "training": training_summary(args.models)}),
         args.metrics: json_text({"episodes": len(eps), "checkpoint": args.checkpoint,
                                  "success": {label: round(r["overall"], 4) for label, r in result.items()}}),
-        args.table: title + "\n".join(lines) + "\n"})
+        args.table: title + "\n".join(lines) + "\n" + failures})
     for label, r in result.items():
         print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} episodes")
     return 0

@@ -56,7 +56,7 @@ def _undertrained(ev: dict, model: str) -> bool:
     has not learnt what regression learns from the same data: it is undertrained, whatever its curve says."""
     if not model.endswith("_cnn") or model == "bc_cnn":
         return False
-    method = {"dp_cnn": "ddpm"}.get(model, "euler")
+    method = "ddpm" if model.startswith("dp_") else "euler"
     row, bc = _row(ev, model, method, 16), _row(ev, "bc_cnn", "direct", 1)
     return bool(row and bc and row["px"] > UNDERTRAINED_RATIO * bc["px"])
 
@@ -78,31 +78,45 @@ def _instability(ev: dict, model: str) -> float | None:
     return sum(max(0.0, math.log(b / a)) for a, b in zip(half[:-1], half[1:], strict=True)) / (len(half) - 1)
 
 
+# The FM / DP pairs, each on the same U-Net: both predicting the clean trajectory (the default pair), and both
+# predicting what the paper's methods predict (a velocity, the noise).
+PAIRS = (("fm_cnn", "dp_cnn", "clean-trajectory output for both"),
+         ("fm_cnn_velocity", "dp_cnn_epsilon", "the paper's pair: velocity vs noise output"))
+
+
 def claims(ev: dict, rp: dict) -> list[str]:
-    """The paper's four claims, as measured here (best validation checkpoints, default samplers)."""
+    """The paper's four claims, as measured here (best validation checkpoints, default samplers), for each FM/DP
+    pair that was trained."""
     out = []
-    fm1, fm16 = _row(ev, "fm_cnn", "euler", 1), _row(ev, "fm_cnn", "euler", 16)
-    dp16 = _row(ev, "dp_cnn", "ddpm", 16)
     success = rp.get("success", {})
 
     def sr(label: str) -> str:
         r = success.get(label)
         return f"{100 * r['overall']:.0f}%" if r else "-"
 
-    if fm1 and dp16:
-        holds = fm1["px"] <= (1 + AS_ACCURATE) * dp16["px"]
-        out.append(f"- FM-1 about as accurate as DP-16 (within {100 * AS_ACCURATE:.0f}% or better): "
-                   f"{_verdict(holds, _converged(ev, 'fm_cnn', 'dp_cnn'))}. FM-CNN 1 step {fm1['px']:.2f} px "
-                   f"({fm1['px224']:.2f} px at 224) vs DP-CNN 16 DDPM steps {dp16['px']:.2f} px "
-                   f"({dp16['px224']:.2f}); replay {sr('fm_cnn/euler-1')} vs {sr('dp_cnn/ddpm-16')}.")
-        ratio = dp16["ms"] / fm1["ms"]
-        out.append(f"- FM-1 much faster than DP-16 (at least {FAST_RATIO:.0f}x): "
-                   f"{'**supported**' if ratio >= FAST_RATIO else '**not supported**'}. {fm1['ms']:.1f} vs "
-                   f"{dp16['ms']:.1f} ms per sample, batch 1, encoder included ({ratio:.1f}x).")
-    if fm16 and dp16:
-        holds = fm16["px"] <= dp16["px"]
-        out.append(f"- At equal steps (16), FM-CNN vs DP-CNN: {_verdict(holds, _converged(ev, 'fm_cnn', 'dp_cnn'))} "
-                   f"that FM is at least as accurate: {fm16['px']:.2f} vs {dp16['px']:.2f} px.")
+    for fm, dp, pair in PAIRS:
+        fm1, fm16 = _row(ev, fm, "euler", 1), _row(ev, fm, "euler", 16)
+        dp16 = _row(ev, dp, "ddpm", 16)
+        if fm1 and dp16:
+            holds = fm1["px"] <= (1 + AS_ACCURATE) * dp16["px"]
+            out.append(f"- FM-1 about as accurate as DP-16 (within {100 * AS_ACCURATE:.0f}% or better; {pair}): "
+                       f"{_verdict(holds, _converged(ev, fm, dp))}. {fm} 1 step {fm1['px']:.2f} px "
+                       f"({fm1['px224']:.2f} px at 224) vs {dp} 16 DDPM steps {dp16['px']:.2f} px "
+                       f"({dp16['px224']:.2f}); replay {sr(f'{fm}/euler-1')} vs {sr(f'{dp}/ddpm-16')}.")
+            ratio = dp16["ms"] / fm1["ms"]
+            out.append(f"- FM-1 much faster than DP-16 (at least {FAST_RATIO:.0f}x; {pair}): "
+                       f"{'**supported**' if ratio >= FAST_RATIO else '**not supported**'}. {fm1['ms']:.1f} vs "
+                       f"{dp16['ms']:.1f} ms per sample, batch 1, encoder included ({ratio:.1f}x).")
+        if fm16 and dp16:
+            holds = fm16["px"] <= dp16["px"]
+            out.append(f"- At equal steps (16), {fm} vs {dp}: {_verdict(holds, _converged(ev, fm, dp))} "
+                       f"that FM is at least as accurate: {fm16['px']:.2f} vs {dp16['px']:.2f} px.")
+        s_fm, s_dp = _instability(ev, fm), _instability(ev, dp)
+        if s_fm is not None and s_dp is not None:
+            out.append(f"- FM more stable in training than DP ({pair}): "
+                       f"{_verdict(s_fm <= s_dp, _converged(ev, fm, dp))}. Mean rise of log val px between "
+                       f"validations over the second half of training: {fm} {s_fm:.4f}, {dp} {s_dp:.4f} (0: never "
+                       "went back up); see val_px_vs_epoch.png.")
     for fm, bc, net in (("fm_cnn", "bc_cnn", "U-Net"), ("fm_transformer", "bc_transformer", "transformer")):
         f, b = _row(ev, fm, "euler", 1), _row(ev, bc, "direct", 1)
         if f and b:
@@ -112,11 +126,6 @@ def claims(ev: dict, rp: dict) -> list[str]:
             out.append(f"- FM better than BC ({net} for both, only the objective differs): "
                        f"{_verdict(holds, _converged(ev, fm, bc))}. 1 step {f['px']:.2f} vs {b['px']:.2f} px{mm}; "
                        f"replay {sr(f'{fm}/euler-1')} (16 steps: {sr(f'{fm}/euler-16')}) vs {sr(bc)}.")
-    s_fm, s_dp = _instability(ev, "fm_cnn"), _instability(ev, "dp_cnn")
-    if s_fm is not None and s_dp is not None:
-        out.append(f"- FM more stable in training than DP: {_verdict(s_fm <= s_dp, _converged(ev, 'fm_cnn', 'dp_cnn'))}"
-                   f". Mean rise of log val px between validations over the second half of training: FM-CNN "
-                   f"{s_fm:.4f}, DP-CNN {s_dp:.4f} (0: never went back up); see val_px_vs_epoch.png.")
     return out
 
 
@@ -127,9 +136,12 @@ def closed_loop_lines(open_rp: dict, cl: dict) -> list[str]:
     if not names:
         return []
     task_list = sorted({tasks.get(n, "?") for n in names})
+    open_labels = ("fm_cnn/euler-1", "fm_cnn/euler-16", "dp_cnn/ddpm-16", "bc_cnn", "demo")
     rows = [(f"open loop: {label} (first frame -> whole trajectory)", open_rp.get("per_episode", {}).get(label, {}))
-            for label in ("fm_cnn/euler-1", "dp_cnn/ddpm-16", "bc_cnn", "demo")]
-    rows += [(f"closed loop: {label}", per) for label, per in cl["per_episode"].items()]
+            for label in open_labels]
+    rows += [(f"closed loop: {label}" if not label.startswith("oracle") else
+              f"closed loop: {label} (the demonstration's own plans in the policy's format: the ceiling)", per)
+             for label, per in cl["per_episode"].items()]
     lines = ["| policy | overall | " + " | ".join(task_list) + " |", "| --- | ---: |" + " ---: |" * len(task_list)]
     for label, per in rows:
         got = [per[n] for n in names if n in per]
@@ -144,7 +156,18 @@ def closed_loop_lines(open_rp: dict, cl: dict) -> list[str]:
     late = [m for m, t in training.items() if not t.get("converged")]
     lines += ["", f"The same {len(names)} test episodes for every row. Closed-loop models: To frames in, Tp waypoints "
               "out at a fixed rate, Ta executed before re-planning (Ta = Tp: one plan per Tp waypoints). "
-              + (f"Not converged: {', '.join(late)}." if late else "All closed-loop models converged.")]
+              + (f"Not converged: {', '.join(late)}." if late else "All closed-loop models converged."), ""]
+    open_per = open_rp.get("per_episode", {})
+    for model, label in (("fm_cnn", "fm_cnn/euler-1"), ("dp_cnn", "dp_cnn/ddpm-16"), ("bc_cnn", "bc_cnn")):
+        ol = [open_per.get(label, {}).get(n) for n in names]
+        cls = {k: per for k, per in cl["per_episode"].items() if k.split("/")[0] == model}
+        if None in ol or not cls:
+            continue
+        best_label, best = max(cls.items(), key=lambda kv: sum(kv[1].get(n, False) for n in names))
+        c, o = sum(best.get(n, False) for n in names), sum(ol)
+        verdict = "**reaches**" if c >= o else "**stays below**"
+        lines.append(f"- Closed loop {verdict} open loop for {model}: best closed loop {best_label} {c}/{len(names)} "
+                     f"vs open loop {label} {o}/{len(names)} on the same scenes.")
     return lines
 
 
@@ -272,6 +295,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--train-logs", type=Path, default=Path("metrics/train"), help="folder of <model>.csv logs")
     p.add_argument("--table1", type=Path, default=Path("reports/table1.md"))
     p.add_argument("--table2", type=Path, default=Path("reports/table2.md"))
+    p.add_argument("--table2-closed-loop", type=Path, default=Path("reports/table2_closed_loop.md"))
     p.add_argument("-o", "--output", type=Path, default=Path("reports/report.md"))
     args = p.parse_args(argv)
     check_outputs(args.output)
@@ -296,7 +320,7 @@ def main(argv: list[str] | None = None) -> int:
         parts += ["## Mode commitment", "", *modes, ""]
     if args.closed_loop is not None and args.closed_loop.exists():
         parts += ["## Closed loop vs open loop (success %)", "", *closed_loop_lines(rp, _load(args.closed_loop)), ""]
-    for t in (args.table1, args.table2):
+    for t in (args.table1, args.table2, args.table2_closed_loop):
         if t.exists():
             parts += [t.read_text().replace("# ", "## ", 1), ""]
     write_text_atomic(args.output, "\n".join(parts))

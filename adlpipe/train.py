@@ -19,8 +19,10 @@ plain values: they load with torch.load(weights_only=True).
 
 Training augments (a random shift of the image stack with the pixel targets moved alike, colour jitter); --no-augment
 turns it off; validation and test never augment. --closed-loop trains on every frame (adlpipe.dataset.loader
-.WindowDataset): To frames and the end effector's position at each in, the next Tp waypoints at a fixed rate out,
-relative to the end effector now. An epoch draws as many windows as there are training episodes, uniformly over
+.WindowDataset): To frames with the measured end effector and gripper at each in, the next Tp waypoints at a fixed
+rate out: by default (--target command) of the commanded end effector (the bags' action stream), relative to the
+command now, so that replay anchors each plan where the last one left the command, not at the lagging measurement.
+An epoch draws as many windows as there are training episodes, uniformly over
 every frame of every episode, so a closed-loop model takes the same optimiser steps as a first-frame one.
 --target action learns the bags' action stream from their
 state stream (val px is then the action's error in its own units); --no-image drops the image encoder, so the state
@@ -45,6 +47,7 @@ from .atomic import atomic_path, write_json_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, float_range, int_range
 from .dataset import schema
 from .dataset.loader import (
+    STATE_DIM,
     Augment,
     Normalizer,
     TrajectoryDataset,
@@ -213,7 +216,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     policy = Policy(cfg).to(device)
     model = DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None) \
         if ranks.world > 1 else policy  # averages the gradients over the processes in backward
-    opt = torch.optim.AdamW(policy.parameters(), lr=lr, betas=ADAMW_BETAS, weight_decay=weight_decay)
+    opt = torch.optim.AdamW(policy.parameters(), lr=lr, betas=ADAMW_BETAS, weight_decay=weight_decay, fused=True)
     sched = cosine_with_warmup(opt, warmup_steps, epochs * steps_per_epoch)
     ema = EMA(policy)
     history: list[dict] = []
@@ -348,9 +351,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-image", action="store_true",
                    help="closed loop: a state-only model (no image encoder; the state stream alone conditions it, "
                    "as the seed's Franka Kitchen policies)")
-    p.add_argument("--target", choices=["ee", "action"], default="ee",
-                   help="closed loop: ee (end-effector waypoints, default) or action (the bags' action stream per "
-                   "frame, with their state stream as the state input: Push-T, joint-space policies)")
+    p.add_argument("--target", choices=["command", "ee", "action"], default="command",
+                   help="closed loop: command (the commanded end effector's waypoints relative to the command now: "
+                   "the action stream's x, y, z; default), ee (the measured end effector's, relative to where it "
+                   "is: for bags without a command topic) or action (the bags' action stream per frame, absolute, "
+                   "with their state stream as the state input: Push-T, joint-space policies)")
     add_device_args(p)
     args = p.parse_args(argv)
     device = resolve_device(args.device)
@@ -366,8 +371,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.action_steps % 4:
             raise AdlError(f"--action-steps {args.action_steps}: the U-Net needs a multiple of 4")
         horizon = args.action_steps
-        overrides.update(n_obs=args.obs_frames, rate_hz=args.rate_hz, state_dim=3 * args.obs_frames,
-                         use_image=not args.no_image)
+        overrides.update(n_obs=args.obs_frames, rate_hz=args.rate_hz, state_dim=STATE_DIM * args.obs_frames,
+                         use_image=not args.no_image, target=args.target)
         if args.target == "action":
             state_dim, action_dim = stream_sizes(args.data)
             overrides.update(target="action", action_dim=action_dim, state_dim=state_dim * args.obs_frames)

@@ -114,8 +114,8 @@ def test_a_format_1_dataset_says_how_to_re_ingest(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def windows(ingested: Path) -> WindowDataset:
     names = _names(ingested)
-    stats = compute_window_stats(ingested, names, Windows(2, 8, 10.0))
-    return WindowDataset(ingested, names, stats, 32, Windows(2, 8, 10.0))
+    stats = compute_window_stats(ingested, names, Windows(2, 8, 10.0, "ee"))  # the measured end effector's target
+    return WindowDataset(ingested, names, stats, 32, Windows(2, 8, 10.0, "ee"))
 
 
 def test_windows_cover_every_frame_with_padding(windows: WindowDataset, ingested: Path) -> None:
@@ -128,7 +128,8 @@ def test_windows_cover_every_frame_with_padding(windows: WindowDataset, ingested
         assert obs.shape == (8, 32, 32) and target.shape == (8, 5)
         np.testing.assert_array_equal(obs[:4], obs[4:])  # before the start: the first frame repeated
         obs, state, target = windows.raw(0, 3)
-        np.testing.assert_allclose(state, g["frames/ee_pos"][2:4])  # where the arm is at each obs frame
+        np.testing.assert_allclose(state[:, :3], g["frames/ee_pos"][2:4])  # where the arm is at each obs frame
+        np.testing.assert_allclose(state[:, 3], g["frames/gripper"][2:4])  # and the gripper
         frames = g["frames"]
         want = observation_from_arrays(frames["rgb"][3], frames["affordance"][0], None, 32, False)
         np.testing.assert_allclose(obs[4:], want)

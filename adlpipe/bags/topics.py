@@ -19,9 +19,11 @@ class TopicMap:
     affordance: str | None = "/adl/affordance"  # 32FC1 image; optional (null: no affordance map)
     joints: str | None = "/joint_states"
     # A policy's own state and action streams (sensor_msgs/JointState, position field), kept per frame: joint-space
-    # policies and Push-T (adlpipe/sim/pusht.py). Optional: null, or absent from a bag, means none.
+    # policies and Push-T (adlpipe/sim/pusht.py). Optional: null, or absent from a bag, means none. The ADL world
+    # publishes its arm's command on `action`: the commanded tcp position (x, y, z in base_frame) and the gripper
+    # command, the stream closed-loop ADL policies learn (train --closed-loop --target command).
     state: str | None = None
-    action: str | None = None
+    action: str | None = "/arm/tcp_command"
     task: str | None = "/adl/task"  # std_msgs/String; optional: --task names it for bags without one
     tf: str = "/tf"
     tf_static: str = "/tf_static"

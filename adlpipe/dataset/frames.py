@@ -7,6 +7,9 @@
     frames/gripper        (T,)        float32  the topic map's gripper joint at each frame (NaN: no such joint)
     frames/state, frames/action (T, D) float32 the topic map's state / action stream nearest each frame within the
                                                tolerance (NaN: none); attr names. Only when the bag has the topic.
+    frames/state_stream, frames/action_stream (M, D) float32 and their stamps frames/<key>_stream_t (M,) float64:
+                                               the whole stream at its own rate (a command at 100 Hz is followed
+                                               between 15 Hz frames, whatever the camera's rate)
     frames/depth          (D, S, S)   uint16   millimetres, 0 = no return; frames/depth_t (D,) its stamps
     frames/depth_index    (T,)        int32    the depth image nearest each frame within the tolerance, -1: none
     frames/affordance     (A, S, S)   float32  frames/affordance_t (A,); frames/affordance_index (T,): the map
@@ -86,6 +89,8 @@ class FrameWriter:
             d = self.g.create_dataset(key, data=_nearest_rows(t, np.asarray(s.t) - t0, rows, tolerance)
                                       .astype(np.float32))
             d.attrs["names"] = list(s.names)
+            self.g.create_dataset(f"{key}_stream_t", data=np.asarray(s.t, float) - t0)
+            self.g.create_dataset(f"{key}_stream", data=rows.astype(np.float32))
         for key in ("depth", "affordance"):
             ts = np.asarray(self.t[key], float) - t0
             self.g.create_dataset(f"{key}_t", data=ts)

@@ -43,25 +43,73 @@ def padded_range(lo: np.ndarray, hi: np.ndarray, prefix: str = "") -> dict[str, 
     return {f"{prefix}min": (lo - pad).tolist(), f"{prefix}max": (hi + pad).tolist()}
 
 
+STATE_DIM = 4  # closed-loop ADL state per observation frame: the measured end effector (x, y, z) and gripper
+
+
+def frame_state(frames: h5py.Group) -> np.ndarray:
+    """(T, 4) float32: the measured end-effector position at each frame and the gripper joint (0 where the bag has
+    no gripper joint: a constant input then)."""
+    grip = np.nan_to_num(frames["gripper"][()].astype(np.float32), nan=0.0)
+    return np.concatenate([frames["ee_pos"][()].astype(np.float32), grip[:, None]], 1)
+
+
+def command_series(g: h5py.Group, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps, commanded end-effector positions (M, 3)) of an episode: the first three values of its action stream
+    at the stream's own rate (a dataset ingested before the stream was kept: at each frame), samples without a
+    command left out."""
+    fr = g["frames"]
+    if "action" not in fr or fr["action"].shape[1] < 3:
+        raise AdlError(f"{where}: no commanded end-effector position per frame (frames/action); ingest with the "
+                       "topic map's action topic naming the arm's Cartesian command (x, y, z first), or train "
+                       "--target ee on the measured end effector")
+    if "action_stream" in fr:
+        t, cmd = fr["action_stream_t"][()], fr["action_stream"][:, :3].astype(float)
+    else:
+        t, cmd = fr["t"][()], fr["action"][:, :3].astype(float)
+    ok = np.isfinite(cmd).all(1)
+    if ok.sum() < 1:
+        raise AdlError(f"{where}: frames/action holds no finite command")
+    return t[ok], cmd[ok]
+
+
+def relative_waypoints(t_now: np.ndarray, now: np.ndarray, series_t: np.ndarray, series_p: np.ndarray,
+                       horizon: int, rate_hz: float, K: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(F, horizon, 5): the positions of a series (the commanded or the measured end effector) at t_now + 1/rate ..
+    t_now + horizon/rate, the last one held after the end, relative to `now` (F, 3): pixels (u, v) from its
+    projection, metres (x, y, z). The closed-loop policies' target format."""
+    future = np.asarray(t_now, float)[:, None] + np.arange(1, horizon + 1)[None] / rate_hz
+    xyz = np.stack([np.interp(future, series_t, series_p[:, d]) for d in range(3)], -1)  # (F, Tp, 3)
+    now = np.asarray(now, float)
+    uv = project(xyz.reshape(-1, 3), K, T).reshape(*xyz.shape[:2], 2) - project(now, K, T)[:, None]
+    return np.concatenate([uv, xyz - now[:, None]], -1).astype(np.float32)
+
+
+def anchor_series(g: h5py.Group, target: str, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(series stamps, series positions, the anchor at each frame (T, 3)) of a closed-loop target: "command" the
+    commanded end effector, relative to the command at the frame; "ee" the measured one, relative to the measured
+    position at the frame."""
+    if target == "command":
+        ct, cmd = command_series(g, where)
+        t = g["frames/t"][()]
+        return ct, cmd, np.stack([np.interp(t, ct, cmd[:, d]) for d in range(3)], 1)
+    return g["series/ee_t"][()], g["series/ee_pos"][()], g["frames/ee_pos"][()].astype(float)
+
+
 def compute_window_stats(index: str | Path, names: list[str], windows: Windows) -> dict[str, list[float]]:
-    """Min/max of closed-loop targets over every frame of `names`: waypoints relative to the current end effector
-    (pixels and metres), and, as state_min/state_max, the absolute positions the state input takes. Reads only the
-    small arrays, an episode at a time."""
+    """Min/max of closed-loop targets over every frame of `names`: waypoints relative to the anchor (the command,
+    or the measured end effector, at the frame; pixels and metres), and, as state_min/state_max, the measured
+    end-effector position and gripper the state input takes. Reads only the small arrays, an episode at a time."""
     files = _EpisodeFiles(str(index), list(names))
     lo, hi = np.full(ACTION_DIM, np.inf), np.full(ACTION_DIM, -np.inf)
-    slo, shi = np.full(3, np.inf), np.full(3, -np.inf)
+    slo, shi = np.full(STATE_DIM, np.inf), np.full(STATE_DIM, -np.inf)
     for n in names:
         g = files.group(n)
-        t = g["frames/t"][()]
-        now = g["frames/ee_pos"][()].astype(float)
-        ee_t, ee_p = g["series/ee_t"][()], g["series/ee_pos"][()]
-        K, T = g["K"][()], g["T_base_camera"][()]
-        future = t[:, None] + np.arange(1, windows.horizon + 1)[None] / windows.rate_hz
-        xyz = np.stack([np.interp(future, ee_t, ee_p[:, d]) for d in range(3)], -1)  # (F, Tp, 3)
-        uv = project(xyz.reshape(-1, 3), K, T).reshape(*xyz.shape[:2], 2) - project(now, K, T)[:, None]
-        rel = np.concatenate([uv, xyz - now[:, None]], -1).reshape(-1, ACTION_DIM)
+        series_t, series_p, now = anchor_series(g, windows.target, f"{files.files[n]}: episode {n}")
+        rel = relative_waypoints(g["frames/t"][()], now, series_t, series_p, windows.horizon, windows.rate_hz,
+                                 g["K"][()], g["T_base_camera"][()]).reshape(-1, ACTION_DIM)
+        state = frame_state(g["frames"])
         lo, hi = np.minimum(lo, rel.min(0)), np.maximum(hi, rel.max(0))
-        slo, shi = np.minimum(slo, now.min(0)), np.maximum(shi, now.max(0))
+        slo, shi = np.minimum(slo, state.min(0)), np.maximum(shi, state.max(0))
     return {**padded_range(lo, hi), **padded_range(slo, shi, "state_")}
 
 
@@ -221,14 +269,16 @@ MAX_CACHED_WINDOWS = 2000  # ~0.3 GB of 8 x 64 x 64 float32 windows at most
 @dataclass(frozen=True)
 class Windows:
     """The closed-loop sample: observation frames t-n_obs+1..t, and the end effector's next `horizon` waypoints
-    at `rate_hz` (t + 1/rate .. t + horizon/rate); with target "action", the recorded actions of frames
-    t..t+horizon-1 instead (absolute, the last repeated after the end) and the recorded state as the state input.
+    at `rate_hz` (t + 1/rate .. t + horizon/rate): target "command" the commanded end effector relative to the
+    command at t (the default: what the arm is told, anchored where the last plan left it), "ee" the measured one
+    relative to the measured position at t; with target "action", the recorded actions of frames t..t+horizon-1
+    instead (absolute, the last repeated after the end) and the recorded state as the state input.
     images False: a state-only model's sample, whose image part is empty (no image is read)."""
 
     n_obs: int = 2
     horizon: int = 16
     rate_hz: float = 10.0
-    target: str = "ee"
+    target: str = "command"
     images: bool = True
 
 
@@ -311,8 +361,10 @@ class WindowDataset(Dataset):
         if self.w.target == "action":
             m.update(state=fr["state"][()].astype(np.float32), action=fr["action"][()].astype(np.float32))
         else:
-            m.update(t=fr["t"][()], frame_ee=fr["ee_pos"][()].astype(np.float32), ee_t=g["series/ee_t"][()],
-                     ee_pos=g["series/ee_pos"][()], K=g["K"][()], T=g["T_base_camera"][()])
+            series_t, series_p, now = anchor_series(g, self.w.target, f"{self.files.files[self.names[e]]}: episode "
+                                                    f"{self.names[e]}")
+            m.update(t=fr["t"][()], state=frame_state(fr), series_t=series_t, series_p=series_p, now=now,
+                     K=g["K"][()], T=g["T_base_camera"][()])
         if len(self._metas) >= 256:
             self._metas.pop(next(iter(self._metas)))
         self._metas[e] = m
@@ -328,10 +380,11 @@ class WindowDataset(Dataset):
         return m["aff"][a]
 
     def raw(self, e: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(observation (To*C, S, S), empty without images; end-effector positions at those frames (To, 3); target
-        (Tp, 5)) of frame k of episode e: the same channels as observation_from_arrays, for a stack at once. The
-        target is relative to where the end effector is at frame k: pixels from its projection, metres from its
-        position. With target "action": the recorded states and actions instead."""
+        """(observation (To*C, S, S), empty without images; state at those frames (To, 4): measured end effector and
+        gripper; target (Tp, 5)) of frame k of episode e: the same channels as observation_from_arrays, for a stack
+        at once. The target is relative to the anchor at frame k (the command, or the measured end effector):
+        pixels from its projection, metres from its position. With target "action": the recorded states and
+        actions instead."""
         g = self.files.group(self.names[e])
         m = self._meta(e)
         idx = [max(j, 0) for j in range(k - self.w.n_obs + 1, k + 1)]
@@ -339,12 +392,9 @@ class WindowDataset(Dataset):
         if self.w.target == "action":
             ahead = np.minimum(np.arange(k, k + self.w.horizon), len(m["action"]) - 1)
             return obs, m["state"][idx], m["action"][ahead]
-        t = float(m["t"][k]) + np.arange(1, self.w.horizon + 1) / self.w.rate_hz
-        xyz = np.stack([np.interp(t, m["ee_t"], m["ee_pos"][:, d]) for d in range(3)], 1)  # clamped: last pose
-        state = m["frame_ee"][idx]
-        now = m["frame_ee"][k].astype(float)
-        uv = project(xyz, m["K"], m["T"]) - project(now[None], m["K"], m["T"])
-        return obs, state, np.concatenate([uv, xyz - now], 1).astype(np.float32)
+        target = relative_waypoints(m["t"][k:k + 1], m["now"][k:k + 1], m["series_t"], m["series_p"],
+                                    self.w.horizon, self.w.rate_hz, m["K"], m["T"])[0]
+        return obs, m["state"][idx], target
 
     def _images(self, g: h5py.Group, m: dict, k: int, idx: list[int]) -> np.ndarray:
         """The stacked image channels of frames idx (ending at k)."""
@@ -364,7 +414,7 @@ class WindowDataset(Dataset):
         return depth_channel(metres_from_mm(g["frames/depth"][d]) if d >= 0 else None, self.image_size)
 
     def __getitem__(self, i: int) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
-        """((image channels, normalised end-effector state (3 * To)), normalised target (Tp, 5))."""
+        """((image channels, normalised state (4 * To)), normalised target (Tp, 5))."""
         return self.item(i, self.epoch)
 
     def item(self, i: int, epoch: int) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
@@ -387,7 +437,7 @@ class WindowDataset(Dataset):
 
 
 def normalize_state(state: np.ndarray, stats: dict) -> torch.Tensor:
-    """End-effector positions (To, 3), metres (or the recorded state, (To, D)) -> [-1, 1] with the state
-    statistics, flattened."""
+    """The state at the observation frames (To, 4): end-effector metres and gripper (or the recorded state, (To, D))
+    -> [-1, 1] with the state statistics, flattened."""
     lo, hi = np.asarray(stats["state_min"]), np.asarray(stats["state_max"])
     return torch.from_numpy((2 * (state - lo) / (hi - lo) - 1).astype(np.float32).reshape(-1))

@@ -24,6 +24,7 @@ class ArmController:
         self.tcp = model.site("tcp").id
         self.hand = model.body("hand").id
         self.q_des = HOME_Q.copy()
+        self.target = HOME_TCP.copy()  # the last tcp setpoint commanded (what a robot's command topic carries)
         self.held: str | None = None
         self.released: set[str] = set()
         self._jacp = np.zeros((3, model.nv))
@@ -45,6 +46,7 @@ class ArmController:
             self.set_target(tcp_target)
             d.qpos[self.qadr] = self.q_des
         mujoco.mj_forward(m, d)
+        self.target = self.tcp_pos
         d.qvel[:] = 0.0
         d.ctrl[: len(ARM_JOINTS)] = d.qpos[self.qadr]
         d.ctrl[len(ARM_JOINTS):] = 0.04
@@ -53,9 +55,20 @@ class ArmController:
     def tcp_pos(self) -> np.ndarray:
         return self.d.site_xpos[self.tcp].copy()
 
+    @property
+    def gripper_command(self) -> float:
+        """The fingers' position command: 0.04 open, 0 closed (a grasp)."""
+        return float(self.d.ctrl[len(ARM_JOINTS)])
+
+    @property
+    def gripper_pos(self) -> float:
+        """The measured opening of one finger (what the joint state reports as the gripper joint)."""
+        return float(self.d.qpos[self.m.jnt_qposadr[self.m.joint("finger_left").id]])
+
     def set_target(self, target: np.ndarray) -> None:
         """One resolved-rate IK step towards the tcp target; writes the joint position commands."""
         m, d = self.m, self.d
+        self.target = np.array(target, float)
         mujoco.mj_jacSite(m, d, self._jacp, self._jacr, self.tcp)
         J = np.vstack([self._jacp[:, self.dadr], self._jacr[:, self.dadr]])
         err_p = target - d.site_xpos[self.tcp]

@@ -15,6 +15,9 @@ from .tasks import TASKS, Scene, SuccessMonitor, Task
 from .world import ARM_JOINTS, FINGER_JOINTS, HOME_TCP, SceneSpec, build_mjcf
 
 DEPTH_RANGE_M = 5.0
+# The commanded setpoint, recorded as the bags' action stream: what the arm is told, which its measured tcp trails
+# by 75-85 ms (Diffusion Policy and LeRobot learn the command, not the lagging measurement).
+COMMAND_NAMES = ["tcp_x", "tcp_y", "tcp_z", "gripper"]
 SPEED = 0.30  # m/s of the demonstrator's tcp between keypoints
 MIN_SEGMENT_S = 0.25
 
@@ -215,7 +218,7 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
     path, duration = keypoint_path(HOME_TCP.copy(), keypoints)
     K = camera_intrinsics(m, width, height)
     T_bc = camera_pose(m, d)
-    st = Streams(task_name, spec, width, height, K, T_bc, duration=duration)
+    st = Streams(task_name, spec, width, height, K, T_bc, duration=duration, action_names=list(COMMAND_NAMES))
     tip_pts = touched_points(task, scene)
     st.affordance = affordance_map(project(tip_pts, K, T_bc), width, height, sigma=0.03 * width)
     camera = RgbdCamera(m, width, height)
@@ -229,6 +232,7 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
         monitor.step()
         if t + 1e-9 >= next_t["joint"]:
             st.joints.append((t, d.qpos[qadr].copy(), d.qvel[vadr].copy()))
+            st.actions.append((t, np.append(ctrl.target, ctrl.gripper_command)))
             next_t["joint"] += 1.0 / joint_hz
         if t + 1e-9 >= next_t["tf"]:
             q = np.zeros(4)
@@ -267,28 +271,48 @@ def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -
     return monitor.success(), np.array(path)
 
 
-def replay_closed_loop(spec: SceneSpec,
-                       plan: Callable[[list[tuple[np.ndarray, np.ndarray, np.ndarray]]], np.ndarray],
+Frame = tuple[np.ndarray, np.ndarray, np.ndarray, float]  # rgb, depth (m), measured tcp, gripper joint
+
+
+@dataclass
+class ClosedLoopRun:
+    """What a closed-loop rollout did: success, plans made, and where it ended against its goal."""
+
+    success: bool
+    plans: int
+    checks: dict[str, bool]  # each part of the task's predicate (force, touches, stroke, dwell, placed)
+    tcp_path: np.ndarray  # (S, 3) measured tcp after every physics step
+    command_path: np.ndarray  # (P, 3) every executed waypoint (the commands), in order
+
+
+def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.ndarray],
                        duration: float, rate_hz: float, execute: int, n_obs: int, image_size: int,
-                       camera_hz: float) -> tuple[bool, int]:
-    """The seed's closed loop: from the last `n_obs` camera frames (rgb, depth, tcp position when rendered) the
-    policy predicts the next waypoints at rate_hz (plan(frames) -> (Tp, 3), base frame); the arm executes the first
-    `execute` of them, and
-    the policy re-plans from the frames of the scene as it is then, until the demonstration's duration has passed.
-    The camera runs at camera_hz throughout, as when recording. Returns (success, number of plans)."""
+                       camera_hz: float, anchor: str = "command") -> ClosedLoopRun:
+    """The seed's closed loop: from the last `n_obs` camera frames (rgb, depth, tcp position and gripper joint when
+    rendered) the policy predicts the next waypoints at rate_hz, relative to an anchor (plan(frames, elapsed) ->
+    (Tp, 3) offsets in the base frame); the arm executes the first `execute` of them, and the policy re-plans from
+    the frames of the scene as it is then, until the demonstration's duration has passed. The camera runs at
+    camera_hz throughout, as when recording.
+
+    anchor "command": the offsets start from the last commanded waypoint (where the previous plan left the arm's
+    command, the home pose at first), the policies trained on the command stream; "measured": from the measured tcp
+    of the newest frame, which trails the command by ~80 ms (policies trained with --target ee)."""
     task = TASKS[spec.task]
     ctrl, scene = make_scene(spec, image_size, image_size)
     camera = RgbdCamera(ctrl.m, image_size, image_size)
     monitor = SuccessMonitor(task, scene)
-    frames: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=n_obs)
+    frames: deque[Frame] = deque(maxlen=n_obs)
     next_frame = [0.0]
+    tcp_path: list[np.ndarray] = []
+    commands: list[np.ndarray] = []
 
     def on_step(t: float) -> None:
         monitor.step()
+        tcp_path.append(ctrl.tcp_pos)
         if t + 1e-9 >= next_frame[0]:
             rgb, depth = camera.render(ctrl.d)
             depth[depth > DEPTH_RANGE_M] = np.nan
-            frames.append((rgb, depth, ctrl.tcp_pos))
+            frames.append((rgb, depth, ctrl.tcp_pos, ctrl.gripper_pos))
             next_frame[0] += 1.0 / camera_hz
 
     ctrl.d.ctrl[len(ARM_JOINTS):] = 0.04
@@ -298,7 +322,9 @@ def replay_closed_loop(spec: SceneSpec,
         on_step(0.0)
         while elapsed < duration - 1e-9:
             stack = [frames[0]] * (n_obs - len(frames)) + list(frames)  # padded at the start, as in training
-            waypoints = np.asarray(plan(stack), float)[:execute]
+            base = last if anchor == "command" else stack[-1][2]
+            waypoints = base + np.asarray(plan(stack, elapsed), float)[:execute]
+            commands += list(waypoints)
             plans += 1
             seg = np.vstack([last, waypoints])
             track_path(ctrl, waypoint_path(seg, len(waypoints) * dt), len(waypoints) * dt, on_step, t_offset=elapsed)
@@ -307,7 +333,8 @@ def replay_closed_loop(spec: SceneSpec,
         release_and_settle(ctrl, last, on_step=lambda _t: monitor.step())
     finally:
         camera.close()
-    return monitor.success(), plans
+    return ClosedLoopRun(monitor.success(), plans, monitor.checks(), np.array(tcp_path),
+                         np.array(commands).reshape(-1, 3))
 
 
 def spec_from_objects(task: str, names: list[str], poses: np.ndarray) -> SceneSpec:
