@@ -12,7 +12,17 @@ import pytest
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 REPO = Path(__file__).resolve().parents[1]
-PUBLIC_BAGS = REPO.parent / "shared" / "fixtures" / "public-bags"
+# Real bags of other projects, used as outside input and never copied here: ADLPIPE_PUBLIC_BAGS names their folder,
+# else ../shared/fixtures/public-bags beside the clone; tests that need them skip (with the reason) when absent.
+PUBLIC_BAGS = Path(os.environ.get("ADLPIPE_PUBLIC_BAGS") or REPO.parent / "shared" / "fixtures" / "public-bags")
+
+
+def public_bag(name: str) -> Path:
+    """A public fixture bag, or a skip naming where it was looked for."""
+    path = PUBLIC_BAGS / name
+    if not path.exists():
+        pytest.skip(f"public fixture bag {name} not found in {PUBLIC_BAGS} (set ADLPIPE_PUBLIC_BAGS to its folder)")
+    return path
 SMALL = ["--size", "64", "--camera-hz", "5"]
 
 

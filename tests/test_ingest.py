@@ -9,7 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import PUBLIC_BAGS, copy_dataset, one_line_error, run_module
+from conftest import copy_dataset, one_line_error, public_bag, run_module
 
 from adlpipe.bags.topics import TopicMap
 from adlpipe.dataset import schema
@@ -114,8 +114,7 @@ PUBLIC = ["example.bag", "example-bz2.bag", "only-a-cube.bag", "bag-with-empty-m
 
 @pytest.mark.parametrize("name", PUBLIC)
 def test_public_bags_fail_with_one_clear_line(name: str, tmp_path: Path) -> None:
-    bag = PUBLIC_BAGS / name
-    assert bag.exists(), f"shared fixture missing: {bag}"
+    bag = public_bag(name)
     out = tmp_path / "out.h5"
     line = one_line_error(run_module("ingest", bag, "-o", out))
     assert str(bag) in line
@@ -132,14 +131,14 @@ def test_public_bags_fail_with_one_clear_line(name: str, tmp_path: Path) -> None
 @pytest.mark.parametrize("name", ["rosbag2_talker_mcap", "rosbag2_talker_sqlite3"])
 def test_silent_zero_message_reads_are_caught(name: str) -> None:
     """rosbags yields 0 of the 10 /topic messages of these folders (QoS quirk): the count check says so."""
-    proc = run_module("ingest", "--list", PUBLIC_BAGS / name)
+    proc = run_module("ingest", "--list", public_bag(name))
     assert proc.returncode == 1
     assert any("/topic" in ln and "declared     10 read      0" in ln and "mismatch" in ln
                for ln in proc.stdout.splitlines()), proc.stdout
 
 
 def test_counts_agree_on_a_good_public_bag() -> None:
-    proc = run_module("ingest", "--list", PUBLIC_BAGS / "example-bz2.bag", check=True)
+    proc = run_module("ingest", "--list", public_bag("example-bz2.bag"), check=True)
     assert "declared   2688 read   2688" in proc.stdout
 
 
@@ -158,10 +157,11 @@ def test_truncated_mcap_leaves_the_output_unchanged(mcap_bags: list[Path], inges
 
 def test_a_bad_bag_among_good_ones_writes_nothing(mcap_bags: list[Path], tmp_path: Path) -> None:
     out = tmp_path / "adl.h5"
-    proc = run_module("ingest", *mcap_bags, PUBLIC_BAGS / "only-a-cube.bag", "-o", out, "--size", "64")
+    cube = public_bag("only-a-cube.bag")
+    proc = run_module("ingest", *mcap_bags, cube, "-o", out, "--size", "64")
     assert "only-a-cube.bag" in one_line_error(proc)
     assert not out.exists()
-    proc = run_module("ingest", *mcap_bags, PUBLIC_BAGS / "only-a-cube.bag", "-o", out, "--size", "64",
+    proc = run_module("ingest", *mcap_bags, cube, "-o", out, "--size", "64",
                       "--skip-bad")
     assert proc.returncode == 1 and "3 episode(s) added" in proc.stdout and "only-a-cube.bag" in proc.stderr
 
