@@ -96,10 +96,28 @@ def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     run = replay_closed_loop(spec, plan, ep.duration_s, cfg.rate_hz, execute, cfg.n_obs, ep.rgb.shape[0], camera_hz,
                              anchor="measured" if (target or cfg.target) == "ee" else "command")
     demo_len = float(np.linalg.norm(np.diff(ep.ee_pos, axis=0), axis=1).sum())
+    demo_at_rate = np.stack([np.interp(np.arange(0, ep.duration_s, 1 / cfg.rate_hz), ep.ee_t, ep.ee_pos[:, d])
+                             for d in range(3)], 1)
     diag = {"failed": [k for k, ok in run.checks.items() if not ok],
             "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - ep.ee_pos[-1])), 2),
-            "path_ratio": round(float(np.linalg.norm(np.diff(run.tcp_path, axis=0), axis=1).sum()) / demo_len, 3)}
+            "path_ratio": round(float(np.linalg.norm(np.diff(run.tcp_path, axis=0), axis=1).sum()) / demo_len, 3),
+            "still_s": round(longest_still(run.command_path, cfg.rate_hz), 2),
+            "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2)}
     return label, ep.name, ep.task, run.success, diag
+
+
+STILL_M = 0.002  # a waypoint that moves less than this from the previous one (2 cm/s at 10 Hz) is standing still
+
+
+def longest_still(waypoints: np.ndarray, rate_hz: float) -> float:
+    """The longest stretch (s) of consecutive waypoints at rate_hz that each moved less than STILL_M: a stall where
+    the demonstration dwells only briefly (a grasp dwells 0.8 s)."""
+    still = np.linalg.norm(np.diff(waypoints, axis=0), axis=1) < STILL_M
+    best = run = 0
+    for s in still:
+        run = run + 1 if s else 0
+        best = max(best, run)
+    return best / rate_hz
 
 
 def oracle_jobs(model_dir: Path, checkpoint: str, data: Path, eps: list, rates: list[float], formats: list[str],
@@ -123,21 +141,25 @@ def oracle_jobs(model_dir: Path, checkpoint: str, data: Path, eps: list, rates: 
 
 def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str, dict[str, bool]]) -> str:
     """Where closed-loop rollouts fail: per policy, how many failed rollouts missed each part of the predicate,
-    and how far the last command ended from the demonstration's end (median, cm) and how much of the
-    demonstration's path length the arm travelled (median), failed rollouts only."""
+    how far the last command ended from the demonstration's end (median, cm), how much of the demonstration's path
+    length the arm travelled, and the longest time the command stood still against the demonstration's longest
+    dwell (medians over the failed rollouts)."""
     parts = ["force", "touches", "stroke", "dwell", "placed"]
     lines = ["\n## Where the failed rollouts fail\n",
              "Failed rollouts per missed part of the predicate (a rollout may miss several); end error: the last "
-             "command from the demonstration's end; path: the arm's path length over the demonstration's "
-             "(medians over the failed rollouts).\n",
-             "| policy | failed | " + " | ".join(parts) + " | end error cm | path |",
-             "| --- | ---: |" + " ---: |" * (len(parts) + 2)]
+             "command from the demonstration's end; path: the arm's path length over the demonstration's; still: "
+             f"the longest stretch the command moved under {1000 * STILL_M:.0f} mm per waypoint, against the "
+             "demonstration's (medians over the failed rollouts).\n",
+             "| policy | failed | " + " | ".join(parts) + " | end error cm | path | still s (demo) |",
+             "| --- | ---: |" + " ---: |" * (len(parts) + 3)]
     for label, diags in diagnostics.items():
         bad = [d for name, d in diags.items() if not per_episode[label].get(name, False)]
         counts = " | ".join(str(sum(p in d["failed"] for d in bad)) for p in parts)
         err = f"{np.median([d['end_error_cm'] for d in bad]):.1f}" if bad else "-"
         path = f"{np.median([d['path_ratio'] for d in bad]):.2f}" if bad else "-"
-        lines.append(f"| {label} | {len(bad)} of {len(diags)} | {counts} | {err} | {path} |")
+        still = (f"{np.median([d['still_s'] for d in bad]):.1f} ({np.median([d['demo_still_s'] for d in bad]):.1f})"
+                 if bad else "-")
+        lines.append(f"| {label} | {len(bad)} of {len(diags)} | {counts} | {err} | {path} | {still} |")
     return "\n".join(lines) + "\n"
 
 
