@@ -56,7 +56,8 @@ def main() -> None:
         size = int(f.attrs["image_size"])
     windows = Windows(2, 16, 10.0)
     stats = compute_window_stats(data, names, windows)
-    cfg = preset("small", "fm_cnn", n_obs=2, horizon=16, rate_hz=10.0, state_dim=6)  # as train --closed-loop
+    cfg = preset("small", "fm_cnn", n_obs=2, horizon=16, rate_hz=10.0, state_dim=8, target="command")  # as train
+    #                                                                                         --closed-loop
     ds = WindowDataset(data, names, stats, cfg.image_size, windows, augment=Augment(size))
     gen = torch.Generator().manual_seed(0)
     load_s = {}
