@@ -15,6 +15,7 @@ from pathlib import Path
 from .atomic import atomic_path, check_outputs, write_text_atomic
 from .cli import Parser
 from .errors import AdlError, run_cli
+from .stats import paired_success, rate_cell
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
 AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px
@@ -94,6 +95,12 @@ def claims(ev: dict, rp: dict) -> list[str]:
         r = success.get(label)
         return f"{100 * r['overall']:.0f}%" if r else "-"
 
+    def paired(a: str, b: str) -> str:
+        """The paired test of two replayed policies on the scenes both ran."""
+        pa, pb = rp.get("per_episode", {}).get(a, {}), rp.get("per_episode", {}).get(b, {})
+        both = sorted(set(pa) & set(pb))
+        return f" ({paired_success([pa[n] for n in both], [pb[n] for n in both])})" if both else ""
+
     for fm, dp, pair in PAIRS:
         fm1, fm16 = _row(ev, fm, "euler", 1), _row(ev, fm, "euler", 16)
         dp16 = _row(ev, dp, "ddpm", 16)
@@ -102,7 +109,8 @@ def claims(ev: dict, rp: dict) -> list[str]:
             out.append(f"- FM-1 about as accurate as DP-16 (within {100 * AS_ACCURATE:.0f}% or better; {pair}): "
                        f"{_verdict(holds, _converged(ev, fm, dp))}. {fm} 1 step {fm1['px']:.2f} px "
                        f"({fm1['px224']:.2f} px at 224) vs {dp} 16 DDPM steps {dp16['px']:.2f} px "
-                       f"({dp16['px224']:.2f}); replay {sr(f'{fm}/euler-1')} vs {sr(f'{dp}/ddpm-16')}.")
+                       f"({dp16['px224']:.2f}); replay {sr(f'{fm}/euler-1')} vs {sr(f'{dp}/ddpm-16')}"
+                       f"{paired(f'{fm}/euler-1', f'{dp}/ddpm-16')}.")
             ratio = dp16["ms"] / fm1["ms"]
             out.append(f"- FM-1 much faster than DP-16 (at least {FAST_RATIO:.0f}x; {pair}): "
                        f"{'**supported**' if ratio >= FAST_RATIO else '**not supported**'}. {fm1['ms']:.1f} vs "
@@ -125,7 +133,8 @@ def claims(ev: dict, rp: dict) -> list[str]:
                   if f.get("px_multimodal") is not None and b.get("px_multimodal") is not None else "")
             out.append(f"- FM better than BC ({net} for both, only the objective differs): "
                        f"{_verdict(holds, _converged(ev, fm, bc))}. 1 step {f['px']:.2f} vs {b['px']:.2f} px{mm}; "
-                       f"replay {sr(f'{fm}/euler-1')} (16 steps: {sr(f'{fm}/euler-16')}) vs {sr(bc)}.")
+                       f"replay {sr(f'{fm}/euler-1')} (16 steps: {sr(f'{fm}/euler-16')}) vs {sr(bc)}"
+                       f"{paired(f'{fm}/euler-1', bc)}.")
     return out
 
 
@@ -164,10 +173,12 @@ def closed_loop_lines(open_rp: dict, cl: dict) -> list[str]:
         if None in ol or not cls:
             continue
         best_label, best = max(cls.items(), key=lambda kv: sum(kv[1].get(n, False) for n in names))
-        c, o = sum(best.get(n, False) for n in names), sum(ol)
+        closed = [bool(best.get(n, False)) for n in names]
+        c, o = sum(closed), sum(ol)
         verdict = "**reaches**" if c >= o else "**stays below**"
-        lines.append(f"- Closed loop {verdict} open loop for {model}: best closed loop {best_label} {c}/{len(names)} "
-                     f"vs open loop {label} {o}/{len(names)} on the same scenes.")
+        lines.append(f"- Closed loop {verdict} open loop for {model}: best closed loop {best_label} "
+                     f"{rate_cell(c, len(names))} % vs open loop {label} {rate_cell(o, len(names))} % on the same "
+                     f"{len(names)} scenes ({paired_success(closed, ol)}).")
     return lines
 
 

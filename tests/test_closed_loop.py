@@ -81,3 +81,4 @@ def test_oracle_plans_in_the_policys_format_solve_the_scenes_at_every_ta(ingeste
     assert success["oracle-ee/Ta-4"]["overall"] < success["oracle-command/Ta-4"]["overall"]
     table = (tmp_path / "t.md").read_text()
     assert "## Where the failed rollouts fail" in table and "| oracle-ee/Ta-4 |" in table
+    assert "| oracle-command/Ta-4 | 100 [44, 100] | 3 |" in table  # the rate, Wilson's interval and n
