@@ -175,10 +175,12 @@ def closed_loop_lines(open_rp: dict, cl: dict) -> list[str]:
         best_label, best = max(cls.items(), key=lambda kv: sum(kv[1].get(n, False) for n in names))
         closed = [bool(best.get(n, False)) for n in names]
         c, o = sum(closed), sum(ol)
-        verdict = "**reaches**" if c >= o else "**stays below**"
-        lines.append(f"- Closed loop {verdict} open loop for {model}: best closed loop {best_label} "
+        test = paired_success(closed, ol)
+        verdict = ("**reaches**" if c >= o else "**stays below**" if test.p_value < 0.05
+                   else f"is below (**not resolved** at n = {len(names)})")
+        lines.append(f"- {model}: closed loop {verdict} open loop. Best closed loop {best_label} "
                      f"{rate_cell(c, len(names))} % vs open loop {label} {rate_cell(o, len(names))} % on the same "
-                     f"{len(names)} scenes ({paired_success(closed, ol)}).")
+                     f"{len(names)} scenes ({test}).")
     return lines
 
 

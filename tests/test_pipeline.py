@@ -85,7 +85,8 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert "## Mode commitment" in report and "| fm_cnn | 16 |" in report
     assert "## Closed loop vs open loop" in report and "| closed loop: fm_cnn/euler-1/Ta-8 |" in report
     assert "| closed loop: oracle-command/Ta-8 (the demonstration's own plans" in report
-    assert "open loop for fm_cnn: best closed loop" in report and "## Where the failed rollouts fail" in report
+    assert "- fm_cnn: closed loop " in report and "open loop. Best closed loop fm_cnn/euler-1/Ta-" in report
+    assert "exact McNemar p = " in report and "## Where the failed rollouts fail" in report
     assert "| open loop: fm_cnn/euler-1 (first frame -> whole trajectory) |" in report
     assert "FM better than BC (U-Net for both" in report and "FM-1 much faster than DP-16" in report
     assert "px: pixels of the 32 px stored image" in report
