@@ -97,7 +97,7 @@ def test_loader_workers_change_nothing_but_speed(four: tuple[Path, Path], tmp_pa
     """One persistent DataLoader with 2 worker processes yields the same batches (windows, augmentation, noise)
     as loading in the training process: the epoch travels with each index."""
     data, split = four
-    cfg = ModelConfig(model="fm_cnn", n_obs=2, horizon=16, rate_hz=10.0, state_dim=6, **TINY)
+    cfg = ModelConfig(model="fm_cnn", n_obs=2, horizon=16, rate_hz=10.0, state_dim=8, target="command", **TINY)
     kw = dict(epochs=3, batch_size=2, lr=1e-3, warmup_steps=2, seed=1, val_fraction=0.0)
     a = train(data, split, tmp_path / "a", cfg, workers=0, **kw)
     b = train(data, split, tmp_path / "b", cfg, workers=2, **kw)
