@@ -121,20 +121,19 @@ def longest_still(waypoints: np.ndarray, rate_hz: float) -> float:
     return best / rate_hz
 
 
-def oracle_jobs(model_dir: Path, checkpoint: str, data: Path, eps: list, rates: list[float], formats: list[str],
-                execute: list[int], placement: Placement) -> list[tuple]:
+def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, data: Path, eps: list, rates: list[float],
+                formats: list[str], execute: list[int], placement: Placement) -> list[tuple]:
     """Closed-loop jobs whose plans are each test demonstration's own future waypoints, in `model_dir`'s target
     format (horizon, rate, statistics) with the anchor of each format: "command" relative to the last command,
     "ee" relative to the measured tcp (the executor's ceiling for policies trained on each)."""
-    cfg = load_policy(model_dir / checkpoint)[0].cfg
     jobs = []
     with schema.open_dataset(data, [ep.name for ep in eps]) as f:
         series = {fmt: [anchor_series(f[schema.EPISODES][ep.name], fmt, f"{ep.source_path}")[:2] for ep in eps]
                   for fmt in formats}
     for fmt in formats:
         for ta in execute:
-            if ta > cfg.horizon:
-                raise AdlError(f"--closed-loop {ta}: {model_dir} predicts only {cfg.horizon} waypoints")
+            if ta > horizon:
+                raise AdlError(f"--closed-loop {ta}: {model_dir} predicts only {horizon} waypoints")
             jobs += [(f"oracle-{fmt}/Ta-{ta}", str(model_dir), checkpoint, ep, rate, 1, ta, 0, placement, (fmt, *s))
                      for ep, rate, s in zip(eps, rates, series[fmt], strict=True)]
     return jobs
@@ -275,10 +274,7 @@ def main(argv: list[str] | None = None) -> int:
             raise AdlError("--closed-loop needs --models")
         worker = _closed_loop_one
         jobs = []
-        if args.oracle:
-            jobs += oracle_jobs(args.models[0], checkpoint, args.data, eps, rates, args.oracle, args.closed_loop,
-                                placement)
-        for d in args.models:
+        for i, d in enumerate(args.models):
             policy = load_policy(d / checkpoint)[0]
             if not policy.cfg.closed_loop:
                 raise AdlError(f"{d}: trained on first frames only; closed loop needs a model trained with "
@@ -286,6 +282,9 @@ def main(argv: list[str] | None = None) -> int:
             if policy.cfg.target == "action":
                 raise AdlError(f"{d}: predicts the bags' action stream, not end-effector waypoints; run it with "
                                "python -m adlpipe.benchmark (Push-T)")
+            if i == 0 and args.oracle:  # in the first model's format
+                jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, args.data, eps, rates, args.oracle,
+                                    args.closed_loop, placement)
             for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
                 for ta in args.closed_loop:
                     if ta > policy.cfg.horizon:

@@ -5,7 +5,7 @@
 Diffusion Policy's optimiser settings for every model alike: AdamW (betas 0.95/0.999, weight decay 1e-6), cosine
 schedule after 500 linear warm-up steps, EMA weights (decay capped at 0.9999; used for the losses, validation and
 inference). Gradients are clipped at norm 1 for every model alike (--grad-clip 0: none, as Diffusion Policy at its lr
-of 1e-4; the small preset trains at 1e-3); README measures that the clip favours no objective.
+of 1e-4; the small preset trains at 1e-3); README measures the clip's effect on each objective.
 A validation part of the train split (--val-fraction, stratified per task, seeded) is held out; every
 --val-every epochs the EMA policy's val px (mean per-waypoint pixel error with the model's default sampler: FM 1
 Euler step, DP 16 DDPM steps, BC direct) is measured, and the best EMA weights are kept in best.pt beside the last

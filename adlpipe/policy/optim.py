@@ -9,7 +9,7 @@ import math
 import torch
 
 # Diffusion Policy's optimiser settings, used for every model alike (N): AdamW betas (0.95, 0.999), 500 warm-up steps,
-# EMA capped at 0.9999, no gradient clipping.
+# EMA capped at 0.9999. (It clips no gradients; train clips at norm 1 for every model: see train's --grad-clip.)
 ADAMW_BETAS = (0.95, 0.999)
 WARMUP_STEPS = 500
 
