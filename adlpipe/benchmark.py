@@ -5,15 +5,18 @@ environment from seeded initial conditions.
     python -m adlpipe.benchmark --env kitchen --models models/fm_cnn models/dp_cnn --steps 2 16 --episodes 50
 
 Each model (trained with `train --closed-loop --target action` on the environment's bags; Franka Kitchen's with
---no-image, on the state alone) runs from initial conditions seed0, seed0+1, ... (none of them a training
-demonstration's: record uses 0..N-1, the default seed0 is 100,000), predicting Tp actions from To observations,
-executing Ta, re-planning, until the environment's step limit (Push-T 300, Franka Kitchen 280). Per model,
-checkpoint (best validation / last) and step count: the mean score, the success rate and milliseconds per plan;
-beside them, from the same initial conditions, the references (the scripted demonstrator; on Push-T also the agent
-holding still, the coverage an episode starts with).
+--no-image, on the state alone; on Push-T either: a --no-image policy sees the keypoint state, the T's 8 keypoints
+and the agent, as in pipelines/pusht's state variant) runs from initial conditions seed0, seed0+1, ... (none of them
+a training demonstration's: record uses 0..N-1, the default seed0 is 100,000), predicting Tp actions from To
+observations, executing Ta, re-planning, until the environment's step limit (Push-T 300, Franka Kitchen 280). Per
+model, checkpoint (--checkpoints: best validation, last) and step count: the mean score with its bootstrap interval,
+the success rate with Wilson's, and milliseconds per plan; beside them, from the same initial conditions, the
+references (the scripted demonstrator; on Push-T also the agent holding still, the coverage an episode starts with).
   Push-T: score = each episode's highest coverage of the goal (the seed's), success = coverage above 0.95.
   Franka Kitchen: score = the share of the four tasks (microwave, kettle, light switch, slide cabinet) done,
   success = all four; the table also gives each task's success rate.
+--curve also runs every checkpoint train --save-every kept along training: the learning curves (a PNG) and the
+seed's Table 2 columns, the best checkpoint's score and the mean over the last three.
 Diffusion Policy samples with --dp-sampler (default DDPM on leading timesteps, as Diffusion Policy does; a
 non-default sampler is named in the model's row).
 Writes --metrics (headline), --details (per episode) and --table (the Table 2 replica).
@@ -33,7 +36,7 @@ from types import ModuleType
 import numpy as np
 import torch
 
-from .atomic import check_outputs, json_text, write_all_atomic
+from .atomic import atomic_path, check_outputs, json_text, write_all_atomic
 from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
 from .dataset.loader import Normalizer, normalize_state, observation_from_arrays
 from .errors import AdlError, run_cli
@@ -42,6 +45,7 @@ from .policy.models import MODELS
 from .policy.objectives import DDPM
 from .runtime import Placement
 from .sim.kitchen import TASKS as KITCHEN_TASKS
+from .stats import mean_interval, success_interval
 
 FIRST_SEED = 100_000
 
@@ -51,7 +55,7 @@ class Benchmark:
     module: str  # adlpipe.sim.<module>: make_env, run_policy, reference, REFERENCES
     title: str
     action_dim: int
-    images: bool  # the seed's policies see images (Push-T) or the state alone (Franka Kitchen)
+    images: bool  # image policies run here (Push-T); state-only policies run on every benchmark
     protocol: str  # what the table's score and success mean
     tasks: tuple[str, ...] = ()  # subtasks whose success rates the table gives (Franka Kitchen's four)
 
@@ -78,10 +82,10 @@ def _policy(path: str) -> tuple:
 def _episode(job: tuple) -> tuple[str, str, int, dict]:
     from .policy.inference import predict
 
-    env, model_dir, checkpoint, steps, method, seed, execute = job
+    env, model_dir, checkpoint, path, steps, method, seed, execute = job
     torch.set_num_threads(1)
     placement = Placement()
-    policy, ck = _policy(str(Path(model_dir) / CHECKPOINTS[checkpoint]))
+    policy, ck = _policy(path)
     cfg, norm, gen = policy.cfg, Normalizer(ck["stats"]), placement.generator(seed)
     blank = np.zeros((cfg.image_size, cfg.image_size), np.float32)
     seconds: list[float] = []
@@ -98,7 +102,7 @@ def _episode(job: tuple) -> tuple[str, str, int, dict]:
         seconds.append(time.perf_counter() - t0)
         return out
 
-    outcome = BENCHMARKS[env].sim().run_policy(plan, seed, execute, cfg.n_obs)
+    outcome = BENCHMARKS[env].sim().run_policy(plan, seed, execute, cfg.n_obs, state_only=not cfg.use_image)
     outcome.pop("plans")
     label = Path(model_dir).name + (f" ({method})" if method not in (None, "ddpm") else "")
     return label, checkpoint, steps, {"seed": seed, **outcome, "ms": 1000.0 * float(np.median(seconds))}
@@ -110,9 +114,12 @@ def _reference(job: tuple) -> tuple[str, dict]:
 
 
 def summary(episodes: list[dict], tasks: tuple[str, ...] = ()) -> dict:
-    """The mean score and success rate of a set of episodes, and each of `tasks`' success rate."""
-    out = {"score": float(np.mean([e["score"] for e in episodes])),
-           "success": float(np.mean([e["success"] for e in episodes]))}
+    """The mean score (with its bootstrap interval) and success rate (with Wilson's) of a set of episodes, their
+    number, and each of `tasks`' success rate."""
+    scores, wins = [e["score"] for e in episodes], sum(bool(e["success"]) for e in episodes)
+    out = {"score": float(np.mean(scores)), "score_ci": list(mean_interval(scores)),
+           "success": wins / len(episodes), "success_ci": list(success_interval(wins, len(episodes))),
+           "n": len(episodes)}
     if tasks:
         out["tasks"] = {t: float(np.mean([t in e["tasks"] for e in episodes])) for t in tasks}
     return out
@@ -125,35 +132,117 @@ def check_model(d: Path, bench: Benchmark) -> dict:
     _policy, ck = load_policy(d / CHECKPOINTS["last"])
     cfg = ck["config"]
     if (cfg.get("target") != "action" or cfg.get("action_dim") != bench.action_dim
-            or cfg.get("use_image", True) != bench.images):
+            or (cfg.get("use_image", True) and not bench.images)):
         how = "" if bench.images else " --no-image"
         raise AdlError(f"{d}: not a {bench.title} policy (train it with --closed-loop --target action{how} on "
                        f"{bench.title} bags)")
     return cfg
 
 
+def curve_checkpoints(d: Path) -> list[tuple[int, Path]]:
+    """(optimiser step, path) of the checkpoints train --save-every kept along training, in order."""
+    found = sorted((int(p.stem.split("_")[1]), p) for p in (d / "checkpoints").glob("step_*.pt")
+                   if p.stem.split("_")[1].isdigit())
+    if not found:
+        raise AdlError(f"{d}: no checkpoints along training in {d / 'checkpoints'}; train it with --save-every N "
+                       "for --curve")
+    return found
+
+
 def _tasks_cell(r: dict) -> str:
     return " / ".join(f"{v:.0%}" for v in r["tasks"].values())
 
 
-def table(bench: Benchmark, rows: dict, refs: dict, episodes: int, execute: int, first_seed: int) -> str:
+def _score_cell(r: dict) -> str:
+    lo, hi = r["score_ci"]
+    return f"{r['score']:.3f} [{lo:.3f}, {hi:.3f}]"
+
+
+def _success_cell(r: dict) -> str:
+    lo, hi = r["success_ci"]
+    return f"{r['success']:.0%} [{100 * lo:.0f}, {100 * hi:.0f}]"
+
+
+def table(bench: Benchmark, rows: dict, refs: dict, episodes: int, execute: int, first_seed: int,
+          curves: dict | None = None) -> str:
+    """The Table 2 replica: references, then one row per model, sampling steps and checkpoint; with curves, the
+    seed's two columns over the checkpoints along training."""
     per_task = bool(bench.tasks)
-    head = "| model | steps | score best / last | success best / last | ms per plan |"
+    head = "| model | steps | checkpoint | score [95 %] | success [95 %] | ms per plan |"
     if per_task:
-        head += f" last: {' / '.join(bench.tasks)} |"
+        head += f" {' / '.join(bench.tasks)} |"
     lines = [f"# {bench.title}, closed loop (the seed's Table 2 setting)", "",
              f"{episodes} seeded initial conditions (seeds {first_seed}..), Ta = {execute}, {bench.protocol} "
-             "best: the checkpoint with the lowest validation error; last: the final one (the seed reports the max "
-             "and the average of its last checkpoints).", "",
-             head, "| --- | ---: | ---: | ---: | ---: |" + (" ---: |" if per_task else "")]
+             "Intervals: 95 %, a percentile bootstrap over the initial conditions for the score, Wilson's for the "
+             "success rate. Checkpoint best: the lowest validation error; last: the final one.", "",
+             head, "| --- | ---: | --- | ---: | ---: | ---: |" + (" ---: |" if per_task else "")]
     for name, r in refs.items():
-        lines.append(f"| {name} (reference) | | {r['score']:.3f} | {r['success']:.0%} | |"
+        lines.append(f"| {name} (reference) | | | {_score_cell(r)} | {_success_cell(r)} | |"
                      + (f" {_tasks_cell(r)} |" if per_task else ""))
-    for (model, steps), r in rows.items():
-        lines.append(f"| {model} | {steps} | {r['best']['score']:.3f} / {r['last']['score']:.3f} | "
-                     f"{r['best']['success']:.0%} / {r['last']['success']:.0%} | {r['last']['ms']:.1f} |"
-                     + (f" {_tasks_cell(r['last'])} |" if per_task else ""))
+    for (model, steps, ck), r in rows.items():
+        lines.append(f"| {model} | {steps} | {ck} | {_score_cell(r)} | {_success_cell(r)} | {r['ms']:.1f} |"
+                     + (f" {_tasks_cell(r)} |" if per_task else ""))
+    if curves:
+        lines += ["", "## Along training (the seed's protocol)", "",
+                  "Every checkpoint kept along training (train --save-every), each on the same initial conditions. "
+                  "max: the best checkpoint's score (the seed's 'max'; picking the best of several noisy figures "
+                  "favours it: its interval is that checkpoint's alone); last 3: the mean over the last three "
+                  "checkpoints (the seed's average of the last checkpoints), its interval a bootstrap of each "
+                  "initial condition's mean over them.", "",
+                  "| model | steps | checkpoints | episodes each | max score (at step) | max success | "
+                  "last 3 score | last 3 success |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        for (model, steps), c in curves.items():
+            top, tail = c["max"], c["last"]
+            lines.append(f"| {model} | {steps} | {len(c['points'])} | {top['n']} | {_score_cell(top)} "
+                         f"({top['step']}) | {_success_cell(top)} | {_score_cell(tail)} | {_success_cell(tail)} |")
     return "\n".join(lines) + "\n"
+
+
+def curve_summary(points: list[tuple[int, list[dict]]], last: int = 3) -> dict:
+    """The seed's two figures from the checkpoints along training ((step, episodes on the same initial conditions)
+    in order): the best checkpoint's, and the mean over the last `last` (per initial condition, then over them)."""
+    rows = [{"step": step, **summary(eps)} for step, eps in points]
+    top = max(rows, key=lambda r: r["score"])
+    tail = [eps for _, eps in points[-last:]]
+    per_ic = [{"score": float(np.mean([eps[i]["score"] for eps in tail])),
+               "success": float(np.mean([eps[i]["success"] for eps in tail]))} for i in range(len(tail[0]))]
+    scores = [e["score"] for e in per_ic]
+    wins = sum(bool(eps[i]["success"]) for eps in tail for i in range(len(eps)))
+    n = sum(len(eps) for eps in tail)
+    tail_row = {"score": float(np.mean(scores)), "score_ci": list(mean_interval(scores)), "success": wins / n,
+                "success_ci": list(success_interval(wins, n)), "n": len(per_ic), "checkpoints": len(tail)}
+    return {"points": rows, "max": top, "last": tail_row}
+
+
+def plot_curves(curves: dict, refs: dict, path: Path, title: str) -> None:
+    """Score and success against optimiser steps, one line per model and step count, the references flat."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for (model, steps), c in curves.items():
+        x = [p["step"] for p in c["points"]]
+        for ax, key in zip(axes, ("score", "success"), strict=True):
+            lo = [p[f"{key}_ci"][0] for p in c["points"]]
+            hi = [p[f"{key}_ci"][1] for p in c["points"]]
+            line, = ax.plot(x, [p[key] for p in c["points"]], marker="o", label=f"{model} ({steps} steps)")
+            ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15)
+    for ax, key in zip(axes, ("score", "success"), strict=True):
+        for (name, r), style in zip(refs.items(), (":", "--", "-."), strict=False):
+            ax.axhline(r[key], color="grey", linestyle=style, label=f"{name} (reference)")
+        ax.set_xlabel("optimiser steps")
+        ax.set_ylabel({"score": "mean max coverage" if "Push" in title else "score", "success": "success rate"}[key])
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"{title}: closed loop along training (95 % intervals shaded)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -165,50 +254,79 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dp-sampler", choices=DDPM.methods, default="ddpm",
                    help="Diffusion Policy's sampler (default ddpm, leading timesteps as Diffusion Policy; "
                    "ddim_trailing: deterministic, starting from the last timestep, the fair few-step choice)")
+    p.add_argument("--checkpoints", nargs="+", choices=sorted(CHECKPOINTS), default=["best", "last"],
+                   help="which of each model's checkpoints to run (default: both)")
     p.add_argument("--episodes", type=POSITIVE, default=50, help="initial conditions (the seed: 500)")
     p.add_argument("--seed", type=NON_NEGATIVE, default=FIRST_SEED, help="the first initial condition")
     p.add_argument("--execute", type=int_range(1, 256), default=8, help="Ta: actions executed per plan")
     p.add_argument("--workers", type=int_range(1, 256), default=2)
+    p.add_argument("--curve", action="store_true",
+                   help="also run every checkpoint kept along training (train --save-every) at --curve-steps on "
+                   "--curve-episodes initial conditions: the learning curves, and the seed's max and last-3 columns")
+    p.add_argument("--curve-steps", type=int_range(1, 100), default=16,
+                   help="sampling steps along the curve (default 16; BC: its one prediction)")
+    p.add_argument("--curve-episodes", type=POSITIVE, help="initial conditions per checkpoint (default: --episodes)")
     p.add_argument("--metrics", type=Path, help="default: metrics/<env>.json")
     p.add_argument("--details", type=Path, help="default: metrics/<env>_details.json")
     p.add_argument("--table", type=Path, help="default: reports/<env>.md")
+    p.add_argument("--curve-plot", type=Path, help="with --curve; default: reports/<env>_curves.png")
     args = p.parse_args(argv)
     bench = BENCHMARKS[args.env]
     metrics = args.metrics or Path(f"metrics/{args.env}.json")
     details = args.details or Path(f"metrics/{args.env}_details.json")
     table_path = args.table or Path(f"reports/{args.env}.md")
-    check_outputs(metrics, details, table_path)
+    plot_path = (args.curve_plot or Path(f"reports/{args.env}_curves.png")) if args.curve else None
+    check_outputs(metrics, details, table_path, *([plot_path] if plot_path else []))
     bench.sim().make_env().close()  # the optional extra's absence: one line
-    jobs = []
+    curve_eps = args.curve_episodes or args.episodes
+    jobs, curve_jobs = [], []
     for d in args.models:
         cfg = check_model(d, bench)
         method = args.dp_sampler if MODELS[cfg["model"]][0].startswith("ddpm") else None
-        for steps in ([1] if cfg["model"].startswith("bc_") else args.steps):
-            jobs += [(args.env, str(d), ck, steps, method, args.seed + i, args.execute) for ck in CHECKPOINTS
-                     for i in range(args.episodes)]
+        bc = cfg["model"].startswith("bc_")
+        for steps in ([1] if bc else args.steps):
+            jobs += [(args.env, str(d), ck, str(d / CHECKPOINTS[ck]), steps, method, args.seed + i, args.execute)
+                     for ck in args.checkpoints for i in range(args.episodes)]
+        if args.curve:
+            steps = 1 if bc else args.curve_steps
+            curve_jobs += [(args.env, str(d), f"step {n}", str(path), steps, method, args.seed + i, args.execute)
+                           for n, path in curve_checkpoints(d) for i in range(curve_eps)]
     per: dict = {}
+    along: dict = {}
     ref_eps: dict = {}
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         for label, ck, steps, episode in pool.map(_episode, jobs):
-            per.setdefault((label, steps), {}).setdefault(ck, []).append(episode)
+            per.setdefault((label, steps, ck), []).append(episode)
+        for label, ck, steps, episode in pool.map(_episode, curve_jobs):
+            along.setdefault((label, steps), {}).setdefault(int(ck.split()[1]), []).append(episode)
         ref_jobs = [(args.env, kind, args.seed + i) for kind in bench.sim().REFERENCES for i in range(args.episodes)]
         for kind, episode in pool.map(_reference, ref_jobs):
             ref_eps.setdefault(kind, []).append(episode)
     refs = {k: summary(eps, bench.tasks) for k, eps in ref_eps.items()}
-    rows = {key: {ck: {**summary(eps, bench.tasks), "ms": float(np.median([e["ms"] for e in eps]))}
-                  for ck, eps in by_ck.items()} for key, by_ck in per.items()}
-    headline = {f"{m}/{s}": {"score_best": round(r["best"]["score"], 3), "score_last": round(r["last"]["score"], 3),
-                             "success_last": round(r["last"]["success"], 3)} for (m, s), r in rows.items()}
+    rows = {key: {**summary(eps, bench.tasks), "ms": float(np.median([e["ms"] for e in eps]))}
+            for key, eps in per.items()}
+    curves = {key: curve_summary(sorted(by_step.items())) for key, by_step in along.items()}
+    headline = {f"{m}/{s}/{ck}": {"score": round(r["score"], 3), "success": round(r["success"], 3)}
+                for (m, s, ck), r in rows.items()}
+    headline.update({f"{m}/{s}/curve": {"score_max": round(c["max"]["score"], 3),
+                                        "score_last3": round(c["last"]["score"], 3)} for (m, s), c in curves.items()})
     write_all_atomic({
         metrics: json_text(headline),
         details: json_text({"env": args.env, "episodes": args.episodes, "first_seed": args.seed,
                             "execute": args.execute,
-                            "results": [{"model": m, "steps": s, **r, "per_episode": per[(m, s)]}
-                                        for (m, s), r in rows.items()],
+                            "results": [{"model": m, "steps": s, "checkpoint": ck, **r, "per_episode": per[(m, s, ck)]}
+                                        for (m, s, ck), r in rows.items()],
+                            "curves": [{"model": m, "steps": s, "episodes": curve_eps, **c}
+                                       for (m, s), c in curves.items()],
                             "references": {k: {**refs[k], "per_episode": ref_eps[k]} for k in refs}}),
-        table_path: table(bench, rows, refs, args.episodes, args.execute, args.seed)})
-    for (m, s), r in rows.items():
-        print(f"{m} {s} steps: score {r['best']['score']:.3f} / {r['last']['score']:.3f} (best / last)")
+        table_path: table(bench, rows, refs, args.episodes, args.execute, args.seed, curves)})
+    if plot_path:
+        plot_curves(curves, refs, plot_path, bench.title)
+    for (m, s, ck), r in rows.items():
+        print(f"{m} {s} steps ({ck}): score {_score_cell(r)}, success {_success_cell(r)}")
+    for (m, s), c in curves.items():
+        print(f"{m} {s} steps along training: max {c['max']['score']:.3f} at step {c['max']['step']}, "
+              f"last 3 {c['last']['score']:.3f}")
     return 0
 
 

@@ -7,9 +7,11 @@
 
 Push-T bags carry the rendered image with a top-down camera model, the agent as end effector and joint state, the
 T block's pose in tf, and the state (agent x, y) and action (target x, y) topics of PUSHT_TOPICS; ingest them with
-`--config pipelines/pusht/topics.yaml`. Franka Kitchen bags likewise carry the rendered image, the robot's joints,
-the end-effector site in tf, the kettle's pose, the 59-D observation as state and the 9-D joint-velocity action
-(KITCHEN_TOPICS, `--config pipelines/kitchen/topics.yaml`).
+`--config pipelines/pusht/topics.yaml`. They also carry /pusht/keypoint_state (the T's 8 keypoints and the agent,
+the low-dimensional observation): `--config pipelines/pusht/topics_state.yaml` makes it the state. Franka Kitchen
+bags likewise carry the rendered image, the robot's joints, the end-effector site in tf, the kettle's pose, the
+59-D observation as state and the 9-D joint-velocity action (KITCHEN_TOPICS, `--config pipelines/kitchen/
+topics.yaml`).
 """
 
 from __future__ import annotations
@@ -88,8 +90,9 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
             tn = ns(t)
             events.append((tn, 7, topics.tf, M.TF,
                            lambda tn=tn, p=p, q=q: f.tf(tn, [(topics.base_frame, topics.ee_frame, p, q)])))
+        extra = [(topic, names, stream) for topic, (names, stream) in st.extra_states.items()]
         for topic, names, stream in ((topics.state, st.state_names, st.states),
-                                     (topics.action, st.action_names, st.actions)):
+                                     (topics.action, st.action_names, st.actions), *extra):
             for t, values in stream if topic else []:
                 tn = ns(t)
                 events.append((tn, 9, topic, M.JOINT_STATE, lambda tn=tn, v=values, n=names:

@@ -2,7 +2,9 @@
 
 Success rates get Wilson's 95 % score interval (scipy.stats.binomtest(...).proportion_ci("wilson")); two policies
 run on the same scenes are compared paired, by the exact binomial test on their discordant scenes (McNemar's exact
-test: only the scenes one solves and the other does not carry information about which is better).
+test: only the scenes one solves and the other does not carry information about which is better). Means (a score,
+an error) get a percentile bootstrap interval over the episodes (scipy.stats.bootstrap, seeded: a table re-made
+from the same episodes prints the same interval).
 """
 
 from __future__ import annotations
@@ -10,9 +12,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from scipy.stats import binomtest
+import numpy as np
+from scipy.stats import binomtest, bootstrap
 
 LEVEL = 0.95
+RESAMPLES = 9999
 
 
 def success_interval(k: int, n: int, level: float = LEVEL) -> tuple[float, float]:
@@ -49,3 +53,21 @@ def paired_success(first: Sequence[bool], second: Sequence[bool]) -> PairedSucce
     b = sum(bool(x) and not bool(y) for x, y in zip(first, second, strict=True))
     c = sum(bool(y) and not bool(x) for x, y in zip(first, second, strict=True))
     return PairedSuccess(b, c, float(binomtest(b, b + c).pvalue) if b + c else 1.0)
+
+
+def mean_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float, float]:
+    """The percentile bootstrap interval of the mean over episodes; the value itself when all are equal or there is
+    one."""
+    x = np.asarray(values, float)
+    if len(x) < 2 or np.ptp(x) == 0:
+        m = float(x.mean()) if len(x) else float("nan")
+        return m, m
+    ci = bootstrap((x,), np.mean, confidence_level=level, n_resamples=RESAMPLES, method="percentile",
+                   rng=np.random.default_rng(0)).confidence_interval
+    return float(ci.low), float(ci.high)
+
+
+def mean_cell(values: Sequence[float], digits: int = 3) -> str:
+    """'0.912 [0.897, 0.925]': the mean and its bootstrap interval."""
+    lo, hi = mean_interval(values)
+    return f"{np.mean(values):.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"

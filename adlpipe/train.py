@@ -32,10 +32,13 @@ alone conditions the model (the seed's Franka Kitchen setting).
 from __future__ import annotations
 
 import contextlib
+import copy
 import csv
 import math
+import shutil
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -57,6 +60,7 @@ from .dataset.loader import (
     compute_stats,
     compute_window_stats,
 )
+from .dataset.memory_windows import MAX_BYTES, MemoryBatches, memory_bytes
 from .dataset.sampling import EpochSampler, TrainingSamples
 from .dataset.splits import load_split, make_split
 from .errors import AdlError, run_cli
@@ -147,9 +151,11 @@ def stream_sizes(data: Path) -> tuple[int, int]:
 
 
 def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], val_names: list[str],
-             aug: Augment | None, seed: int) -> tuple[dict, Dataset, Dataset, Dataset | None]:
+             aug: Augment | None, seed: int, windows_per_epoch: str = "episodes"
+             ) -> tuple[dict, Dataset, Dataset, Dataset | None]:
     """(stats, train, test, val) datasets of the model's kind: windows of every frame (closed loop) or first frames.
-    aug: the training augmentation (validation and test never augment)."""
+    aug: the training augmentation (validation and test never augment). windows_per_epoch (closed loop): an epoch
+    draws as many windows as there are training episodes ("episodes") or every window once ("all")."""
     if cfg.closed_loop:
         w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz, cfg.target, cfg.use_image)
         stats = (compute_action_stats(data, train_names) if cfg.target == "action"
@@ -158,7 +164,10 @@ def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], 
         def windows(names: list[str], **kw: object) -> WindowDataset:
             return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, **kw)
 
-        return (stats, windows(train_names, augment=aug, draws_per_epoch=len(train_names)),
+        train_ds = windows(train_names, augment=aug, draws_per_epoch=len(train_names))
+        if windows_per_epoch == "all":
+            train_ds.draws = len(train_ds.items)
+        return (stats, train_ds,
                 windows(split["test"] or train_names, frames_per_episode=2),
                 windows(val_names, frames_per_episode=4) if val_names else None)
     stats = compute_stats(str(data), train_names)
@@ -170,15 +179,51 @@ def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], 
             firsts(val_names, cache=False) if val_names else None)
 
 
+class LoaderBatches:
+    """The streamed training batches: one DataLoader for the run (its workers, each with its own HDF5 handles, live
+    as long as it does) over (epoch, index) keys."""
+
+    def __init__(self, train_ds: Dataset, batch_size: int, seed: int, workers: int, device: torch.device,
+                 ranks: Ranks) -> None:
+        self.sampler = EpochSampler(len(train_ds), ranks.world, ranks.rank, seed)
+        self.loader = DataLoader(TrainingSamples(train_ds, seed), batch_size=batch_size // ranks.world,
+                                 sampler=self.sampler, num_workers=workers, persistent_workers=workers > 0,
+                                 pin_memory=device.type == "cuda")
+
+    def set_epoch(self, epoch: int) -> None:
+        self.sampler.set_epoch(epoch)
+
+    def __len__(self) -> int:
+        return len(self.loader)
+
+    def __iter__(self) -> Iterator:
+        return iter(self.loader)
+
+
+def training_batches(train_ds: Dataset, cfg: ModelConfig, batch_size: int, seed: int, workers: int,
+                     device: torch.device, ranks: Ranks) -> LoaderBatches | MemoryBatches:
+    """A state-only closed-loop model's windows from memory (no per-sample loading: a batch is one gather) when they
+    fit; otherwise streamed."""
+    if isinstance(train_ds, WindowDataset) and not cfg.use_image:
+        size = cfg.state_dim + cfg.horizon * cfg.action_dim
+        if memory_bytes(train_ds, size, 0) <= MAX_BYTES:
+            every = copy.copy(train_ds)  # the same windows, item i = window i
+            every.draws = None
+            return MemoryBatches(every, batch_size, len(train_ds), seed, ranks.world, ranks.rank)
+    return LoaderBatches(train_ds, batch_size, seed, workers, device, ranks)
+
+
 def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
           lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = WARMUP_STEPS, grad_clip: float = 1.0,
           seed: int = 0,
           log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
           val_fraction: float = 0.1, val_every: int = 5, augment: bool = True, workers: int = 0,
-          device: torch.device | None = None, precision: str = "fp32", ranks: Ranks | None = None) -> dict:
+          device: torch.device | None = None, precision: str = "fp32", ranks: Ranks | None = None,
+          windows_per_epoch: str = "episodes", save_every: int = 0) -> dict:
     """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests).
     batch_size is the global batch: under torchrun (ranks) each process takes batch_size / world of it; rank 0
-    validates, logs and writes the checkpoints."""
+    validates, logs and writes the checkpoints. save_every: also keep the EMA weights of every this many epochs
+    in <out>/checkpoints/ (the benchmark's learning curves)."""
     device, ranks = device or torch.device("cpu"), ranks or Ranks()
     out.mkdir(parents=True, exist_ok=True)
     split = load_split(split_path)
@@ -193,24 +238,23 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
     train_names, val_names = split_validation(tasks, val_fraction, seed)
     aug = Augment(stored_size) if augment else None  # windows without images skip it
-    stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed)
+    stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed,
+                                                windows_per_epoch)
     norm = Normalizer(stats)
     val_obs, val_px_target = None, None
     if val_ds is not None and ranks.main:
         items = [val_ds[i] for i in range(len(val_ds))]
         val_obs = to_device(collate_obs([o for o, _ in items]), device)
         val_px_target = norm.unnormalize(torch.stack([a for _, a in items]))[..., :val_dims(cfg)].to(device)
-    sampler = EpochSampler(len(train_ds), ranks.world, ranks.rank, seed)
-    # One loader for the run: its workers (each with its own HDF5 handles) live as long as it does.
-    loader = DataLoader(TrainingSamples(train_ds, seed), batch_size=batch_size // ranks.world, sampler=sampler,
-                        num_workers=workers, persistent_workers=workers > 0, pin_memory=device.type == "cuda")
+    loader = training_batches(train_ds, cfg, batch_size, seed, workers, device, ranks)
     test_loader = DataLoader(TrainingSamples(test_ds, seed), batch_size=batch_size,
                              sampler=EpochSampler(len(test_ds), shuffle=False), num_workers=0)
     steps_per_epoch = len(loader)
     hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
                "warmup_steps": warmup_steps, "grad_clip": grad_clip, "seed": seed, "data": str(data),
                "split": sorted(split["train"]),
-               "val_fraction": val_fraction, "val_every": val_every, "augment": augment}
+               "val_fraction": val_fraction, "val_every": val_every, "augment": augment,
+               "windows_per_epoch": windows_per_epoch}
 
     torch.manual_seed(seed)
     policy = Policy(cfg).to(device)
@@ -243,7 +287,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
                unit="epoch", file=sys.stderr, disable=None if progress and ranks.main else True)
     for epoch in bar:
         t0 = time.time()
-        sampler.set_epoch(epoch)  # the epoch's permutation, windows, augmentation and noise: resumable exactly
+        loader.set_epoch(epoch)  # the epoch's permutation, windows, augmentation and noise: resumable exactly
         model.train()
         total, n = 0.0, 0
         for batch in loader:
@@ -279,6 +323,9 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             if val_px is not None and val_px < best_px:  # written before last.pt: a resumed run never lacks it
                 best_px = val_px
                 save_atomic(inference_checkpoint(epoch + 1), out / "best.pt")
+            if save_every and (epoch + 1) % save_every == 0:
+                save_atomic(inference_checkpoint(epoch + 1),
+                            out / "checkpoints" / f"step_{(epoch + 1) * steps_per_epoch:07d}.pt")
             save_atomic({"model": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
                          "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1,
                          "history": history, "config": cfg.to_dict(), "hparams": hparams, "stats": stats}, last)
@@ -337,6 +384,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int_range(0, 64), default=0,
                    help="DataLoader worker processes (per training process) that load and augment batches beside "
                    "training; they persist for the whole run (default 0: the training process loads)")
+    p.add_argument("--windows-per-epoch", choices=["episodes", "all"], default="episodes",
+                   help="closed loop: an epoch draws as many windows as there are training episodes (default: as "
+                   "many optimiser steps as a first-frame model) or every window once (all)")
+    p.add_argument("--save-every", type=NON_NEGATIVE, default=0,
+                   help="keep the EMA weights of every N epochs in <out>/checkpoints/ for learning curves "
+                   "(benchmark --curve; default 0: none)")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and train from scratch")
     p.add_argument("--no-augment", action="store_true",
                    help="train without random shifts and colour jitter (on by default; never at evaluation)")
@@ -390,11 +443,13 @@ def main(argv: list[str] | None = None) -> int:
             if args.restart and ranks.main:
                 for name in ("last.pt", "best.pt"):
                     (out / name).unlink(missing_ok=True)
+                shutil.rmtree(out / "checkpoints", ignore_errors=True)
             barrier(ranks)  # no process reads a checkpoint that --restart is about to remove
             m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay,
                       args.warmup_steps, args.grad_clip, args.seed, args.log or out / "log.csv", progress=True,
                       val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment,
-                      workers=args.workers, device=device, precision=args.precision, ranks=ranks)
+                      workers=args.workers, device=device, precision=args.precision, ranks=ranks,
+                      windows_per_epoch=args.windows_per_epoch, save_every=args.save_every)
     if not ranks.main:
         return 0
     val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"

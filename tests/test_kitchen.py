@@ -86,20 +86,21 @@ def test_state_only_policies_train_and_run_the_kitchen_benchmark(kitchen_data: P
     assert not any(k.startswith("encoder.") for k in ck["ema"])  # no image encoder at all
     out = tmp_path / "out"
     run_module("benchmark", "--env", "kitchen", "--models", *(tmp_path / m for m in ("fm_cnn", "dp_cnn", "bc_cnn")),
-               "--steps", "2", "--dp-sampler", "ddim_trailing", "--episodes", "1", "--metrics", out / "m.json",
+               "--steps", "2", "--dp-sampler", "ddim_trailing", "--checkpoints", "last", "--episodes", "1",
+               "--metrics", out / "m.json",
                "--details", out / "d.json", "--table", out / "t.md", check=True)
     details = json.loads((out / "d.json").read_text())
-    rows = {(r["model"], r["steps"]): r for r in details["results"]}
-    assert set(rows) == {("fm_cnn", 2), ("dp_cnn (ddim_trailing)", 2), ("bc_cnn", 1)}  # the sampler is named
-    for r in rows.values():
-        (e,) = r["per_episode"]["last"]
+    rows = {(r["model"], r["steps"], r["checkpoint"]): r for r in details["results"]}
+    assert set(rows) == {("fm_cnn", 2, "last"), ("dp_cnn (ddim_trailing)", 2, "last"), ("bc_cnn", 1, "last")}
+    for r in rows.values():  # the sampler is named; only the checkpoint asked for ran
+        (e,) = r["per_episode"]
         assert e["seed"] == 100_000 and set(e["tasks"]) <= set(kitchen.TASKS)
         assert e["score"] == len(e["tasks"]) / 4 and e["success"] == (len(e["tasks"]) == 4)
-        assert set(r["last"]["tasks"]) == set(kitchen.TASKS)
+        assert set(r["tasks"]) == set(kitchen.TASKS) and r["n"] == 1
     demo = details["references"]["demonstrator"]
     assert demo["score"] == 1.0 and demo["tasks"] == {t: 1.0 for t in kitchen.TASKS}  # seed 100000: all four
     table = (out / "t.md").read_text()
-    assert "| fm_cnn | 2 |" in table and "microwave / kettle / light switch / slide cabinet" in table
+    assert "| fm_cnn | 2 | last |" in table and "microwave / kettle / light switch / slide cabinet" in table
 
 
 def test_the_kitchen_benchmark_refuses_an_image_policy(kitchen_data: Path, tmp_path: Path) -> None:

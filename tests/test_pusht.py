@@ -69,13 +69,15 @@ def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path
     run_module("benchmark", "--models", tmp_path / "fm_cnn", tmp_path / "bc_cnn", "--steps", "2", "--episodes", "2",
                "--metrics", out / "m.json", "--details", out / "d.json", "--table", out / "t.md", check=True)
     details = json.loads((out / "d.json").read_text())
-    rows = {(r["model"], r["steps"]): r for r in details["results"]}
-    assert set(rows) == {("fm_cnn", 2), ("bc_cnn", 1)}
+    rows = {(r["model"], r["steps"], r["checkpoint"]): r for r in details["results"]}
+    assert set(rows) == {(m, s, ck) for m, s in (("fm_cnn", 2), ("bc_cnn", 1)) for ck in ("best", "last")}
     for r in rows.values():
-        eps = r["per_episode"]["last"]
-        assert [e["seed"] for e in eps] == [100_000, 100_001]
+        eps = r["per_episode"]
+        assert [e["seed"] for e in eps] == [100_000, 100_001] and r["n"] == 2
         assert all(0.0 <= e["score"] <= 1.0 for e in eps)
-    assert "| fm_cnn | 2 |" in (out / "t.md").read_text()
+        lo, hi = r["score_ci"]  # the bootstrap interval holds the mean; Wilson's the rate
+        assert lo <= r["score"] <= hi and r["success_ci"][0] <= r["success"] <= r["success_ci"][1]
+    assert "| fm_cnn | 2 | last |" in (out / "t.md").read_text()
     refs = details["references"]
     assert refs["demonstrator"]["success"] == 1.0 and refs["demonstrator"]["score"] > 0.95
     assert refs["no action"]["success"] == 0.0 and refs["no action"]["score"] < 0.9
@@ -106,3 +108,68 @@ def test_ingest_without_the_state_topic_has_no_state(pusht_data: Path, tmp_path:
     proc = run_module("train", "--model", "fm_cnn", "--closed-loop", "--target", "action", "--data",
                       tmp_path / "d.h5", "--split", tmp_path / "split.json", "--out", tmp_path / "m", "--epochs", "1")
     assert proc.returncode == 2 and "no state/action per frame" in one_line_error(proc)
+
+
+def test_the_state_variant_records_trains_from_memory_and_curves(pusht_data: Path, tmp_path: Path) -> None:
+    """The low-dimensional Push-T: the same bags ingested with topics_state.yaml carry gym-pusht's keypoint state;
+    a state-only policy trains on windows held in memory (the same windows the streamed loader gives), keeps
+    checkpoints along training and runs the benchmark's learning curve on the keypoint state the environment gives."""
+    import torch
+
+    from adlpipe.dataset.loader import WindowDataset, Windows, compute_action_stats
+    from adlpipe.dataset.memory_windows import MemoryBatches
+    from adlpipe.sim.pusht import keypoint_state, make_env
+
+    data = tmp_path / "state.h5"
+    run_module("ingest", *sorted((pusht_data / "bags").glob("*.mcap")), "-o", data, "--size", "48", "--config",
+               Path(__file__).parents[1] / "pipelines" / "pusht" / "topics_state.yaml", check=True)
+    with schema.open_dataset(data) as f, schema.open_dataset(pusht_data / "pusht.h5") as g:
+        names = schema.episode_names(f)
+        first = f[schema.EPISODES][names[0]]["frames"]
+        assert first["state"].shape[1] == 18 and list(first["state"].attrs["names"])[-2:] == ["agent_x", "agent_y"]
+        # the agent part is the image variant's state; frame 0 is the environment's own keypoints at reset
+        assert np.allclose(first["state"][:, 16:], g[schema.EPISODES][names[0]]["frames/state"][()])
+        source = str(f[schema.EPISODES][names[0]].attrs["source_path"])
+    seed = int(Path(source).stem.rsplit("_", 1)[1])  # push_the_T_<initial condition>.mcap
+    env = make_env(48)
+    env.reset(seed=seed)
+    at_reset = keypoint_state(env.unwrapped)
+    env.close()
+    with schema.open_dataset(data) as f:
+        assert np.allclose(f[schema.EPISODES][names[0]]["frames/state"][0], at_reset, atol=1e-6)
+
+    # memory windows == streamed windows, and each epoch's draw is a permutation continued across epochs
+    stats = compute_action_stats(data, names)
+    w = Windows(2, 16, 10.0, "action", images=False)
+    streamed = WindowDataset(data, names, stats, 48, w)
+    mem = MemoryBatches(streamed, batch_size=8, draws=len(streamed), seed=3)
+    for i in (0, 7, len(streamed) - 1):
+        (_img, state), target = streamed[i]
+        assert torch.equal(mem.states[i], state) and torch.equal(mem.targets[i], target)
+    assert sorted(mem.order(0)) == list(range(len(streamed))) and not np.array_equal(mem.order(0), mem.order(1))
+    (obs_img, obs_state), target, eps, u = next(iter(mem))
+    assert obs_img.shape == (8, 0) and obs_state.shape == (8, 36) and target.shape == eps.shape == (8, 16, 2)
+    two = MemoryBatches(streamed, batch_size=8, draws=len(streamed), seed=3, world=2, rank=1)
+    two.set_epoch(0)
+    (_, s1), t1, e1, _ = next(iter(two))
+    assert torch.equal(s1, obs_state[4:]) and torch.equal(e1, eps[4:])  # rank 1's share of the same global batch
+
+    out = tmp_path / "fm"
+    run_module("train", "--model", "fm_cnn", "--closed-loop", "--target", "action", "--no-image", "--data",
+                      data, "--split", pusht_data / "split.json", "--out", out, "--epochs", "2", "--batch-size", "16",
+                      "--windows-per-epoch", "all", "--save-every", "1", "--val-fraction", "0.34", check=True)
+    metrics = json.loads((out / "metrics.json").read_text())
+    steps_per_epoch = metrics["optimizer_steps"] // 2
+    assert steps_per_epoch > 2  # every window once per epoch, not one per episode
+    assert sorted(p.name for p in (out / "checkpoints").glob("*.pt")) == [
+        f"step_{steps_per_epoch:07d}.pt", f"step_{2 * steps_per_epoch:07d}.pt"]
+    res = tmp_path / "res"
+    run_module("benchmark", "--models", out, "--steps", "2", "--checkpoints", "last", "--episodes", "1",
+               "--curve", "--curve-steps", "2", "--metrics", res / "m.json", "--details", res / "d.json",
+               "--table", res / "t.md", "--curve-plot", res / "c.png", check=True)
+    details = json.loads((res / "d.json").read_text())
+    (curve,) = details["curves"]
+    assert [p["step"] for p in curve["points"]] == [steps_per_epoch, 2 * steps_per_epoch]
+    assert curve["last"]["checkpoints"] == 2 and curve["max"]["score"] == max(p["score"] for p in curve["points"])
+    assert (res / "c.png").read_bytes()[:4] == b"\x89PNG"
+    assert "Along training" in (res / "t.md").read_text()

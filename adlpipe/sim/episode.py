@@ -132,6 +132,8 @@ class Streams:
     actions: list[tuple[float, np.ndarray]] = field(default_factory=list)
     state_names: list[str] = field(default_factory=list)
     action_names: list[str] = field(default_factory=list)
+    # Further JointState streams of the same kind: topic -> (names, [(t, values)]) (Push-T's keypoint state)
+    extra_states: dict[str, tuple[list[str], list[tuple[float, np.ndarray]]]] = field(default_factory=dict)
 
 
 def camera_intrinsics(model: mujoco.MjModel, width: int, height: int) -> np.ndarray:

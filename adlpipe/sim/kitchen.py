@@ -403,10 +403,13 @@ def _outcome(done: set[str]) -> dict:
 
 
 def run_policy(plan: Callable[[None, np.ndarray], np.ndarray], seed: int, execute: int, n_obs: int,
-               max_steps: int = MAX_STEPS) -> dict:
+               max_steps: int = MAX_STEPS, state_only: bool = True) -> dict:
     """The seed's closed loop on Franka Kitchen from initial condition `seed`: plan(None, states) -> actions (Tp, 9)
     from the last n_obs 59-D observations (the first repeated before the start; a state-only policy sees no image),
-    execute the first `execute`, re-plan, until all four tasks are done or the 280-step limit."""
+    execute the first `execute`, re-plan, until all four tasks are done or the 280-step limit. (Its policies are
+    state-only: state_only is there for the benchmark's one call signature.)"""
+    if not state_only:
+        raise ValueError("Franka Kitchen runs state-only policies")
     env = make_env()
     try:
         history = [reset(env, seed)] * n_obs

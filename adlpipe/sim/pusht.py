@@ -58,6 +58,18 @@ def block_pose(u: object) -> np.ndarray:
     return np.array([*u.block.position, u.block.angle])
 
 
+def keypoint_state(u: object) -> np.ndarray:
+    """gym-pusht's low-dimensional observation (its obs_type "environment_state_agent_pos", Diffusion Policy's
+    low-dimensional Push-T): the T's 8 keypoints (x0, y0, .. x7, y7) and the agent's position, 18 values in pixels.
+    Computed from the unwrapped environment `u` as gym-pusht computes it, so the recorder and the closed loop give a
+    policy the same numbers whatever observation type the environment renders."""
+    keypoints = u.get_keypoints(u._block_shapes).flatten()
+    return np.concatenate([keypoints, np.asarray(u.agent.position, float)]).astype(np.float64)
+
+
+KEYPOINT_NAMES = [f"keypoint{i}_{axis}" for i in range(8) for axis in "xy"] + ["agent_x", "agent_y"]
+
+
 def pose_error(pose: np.ndarray, goal: np.ndarray) -> float:
     return float(np.linalg.norm(pose[:2] - goal[:2]) + RAD_WEIGHT * abs(wrap(pose[2] - goal[2])))
 
@@ -176,6 +188,7 @@ class PushPlanner:
 
 
 TASK = "push the T"
+KEYPOINT_TOPIC = "/pusht/keypoint_state"  # the low-dimensional state (pipelines/pusht/topics_state.yaml)
 CONTROL_HZ = 10.0
 WORKSPACE_M = 0.512  # the 512-pixel workspace as metres in the bag's base frame (1 px = 1 mm)
 
@@ -193,14 +206,16 @@ def camera_model(size: int) -> tuple[np.ndarray, np.ndarray]:
 
 def record(seed: int, size: int = 96) -> object:
     """One demonstration from the seeded initial condition as sensor streams (adlpipe.sim.episode.Streams): the
-    rendered image, the agent as end effector and as the state (x, y in pixels), the action (the target position),
-    the T block's pose as an object, all at the control rate."""
+    rendered image, the agent as end effector and as the state (x, y in pixels), the keypoint state (keypoint_state,
+    the low-dimensional observation), the action (the target position), the T block's pose as an object, all at the
+    control rate."""
     from .episode import Streams
     from .world import SceneSpec
 
     K, T = camera_model(size)
     st = Streams(TASK, SceneSpec(task=TASK, poses={}), size, size, K, T, joint_names=["agent_x", "agent_y"],
                  state_names=["agent_x", "agent_y"], action_names=["target_x", "target_y"])
+    keypoints = st.extra_states.setdefault(KEYPOINT_TOPIC, (KEYPOINT_NAMES, []))[1]
     env = make_env(size)
     info: dict = {}
     try:
@@ -212,6 +227,7 @@ def record(seed: int, size: int = 96) -> object:
             st.joints.append((t, agent, np.zeros(2)))
             st.ee.append((t, np.array([*agent / 1000.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0])))
             st.states.append((t, agent))
+            keypoints.append((t, step.keypoints))
             st.actions.append((t, np.asarray(step.action, float)))
             st.objects.append((t, {"tee": (np.array([x / 1000.0, y / 1000.0, 0.0]),
                                            np.array([math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)]))}))
@@ -226,6 +242,7 @@ def record(seed: int, size: int = 96) -> object:
 class Step:
     obs: dict  # the observation the action was chosen on
     block: np.ndarray  # the block's pose then (x, y, angle)
+    keypoints: np.ndarray  # keypoint_state then
     action: np.ndarray
     info: dict  # after the action: coverage, is_success
 
@@ -243,9 +260,9 @@ def demonstrate(env: object, seed: int, max_steps: int = MAX_STEPS) -> Iterator[
             return
         for action in push.actions:
             action = np.asarray(action, np.float32)
-            block = block_pose(u)
+            block, keypoints = block_pose(u), keypoint_state(u)
             nxt, _reward, done, _trunc, info = env.step(action)
-            yield Step(obs, block, action, info)
+            yield Step(obs, block, keypoints, action, info)
             obs, steps = nxt, steps + 1
             if done or steps >= max_steps:
                 return
@@ -255,21 +272,28 @@ REFERENCES = ("demonstrator", "no action")  # the scale a policy's score sits on
 
 
 def run_policy(plan: object, seed: int, execute: int, n_obs: int, size: int = 96,
-               max_steps: int = MAX_STEPS) -> dict:
+               max_steps: int = MAX_STEPS, state_only: bool = False) -> dict:
     """The seed's closed loop on Push-T from initial condition `seed`: plan(frames, states) -> actions (Tp, 2) from
     the last n_obs observations (the first repeated before the start), execute the first `execute`, re-plan.
-    Returns score (the highest coverage reached), success (coverage above 0.95 at some step) and plans made."""
+    states: the agent's position per frame (the image policies' state), or for a `state_only` policy the keypoint
+    state (keypoint_state, the low-dimensional setting). Returns score (the highest coverage reached), success
+    (coverage above 0.95 at some step) and plans made."""
     env = make_env(size)
+    u = env.unwrapped
+
+    def observe(obs: dict) -> tuple[np.ndarray, np.ndarray]:
+        return obs["pixels"], keypoint_state(u) if state_only else np.asarray(obs["agent_pos"], float)
+
     try:
         obs, _info = env.reset(seed=seed)
-        frames = [obs] * n_obs
+        frames = [observe(obs)] * n_obs
         best, plans, steps = 0.0, 0, 0
         while steps < max_steps:
-            actions = np.asarray(plan([o["pixels"] for o in frames], np.stack([o["agent_pos"] for o in frames])))
+            actions = np.asarray(plan([p for p, _ in frames], np.stack([s for _, s in frames])))
             plans += 1
             for a in actions[:execute]:
                 obs, _r, done, _trunc, info = env.step(np.clip(a, 0, 512).astype(np.float32))
-                frames = frames[1:] + [obs]
+                frames = frames[1:] + [observe(obs)]
                 best, steps = max(best, float(info["coverage"])), steps + 1
                 if done:
                     return {"score": best, "success": True, "plans": plans}
