@@ -266,3 +266,17 @@ def test_a_start_marker_without_stop_is_one_line(tmp_path: Path) -> None:
     (tmp_path / "s.mcap.segments.yaml").write_text("segments: [[2, 1]]\n")
     with pytest.raises(AdlError, match="0 <= t0 < t1"):
         find_segments(bag, TopicMap(**topic_map(lay)))
+
+
+def test_the_suggested_config_keeps_the_projects_affordance_map(mcap_bags: list[Path], tmp_path: Path) -> None:
+    """On adlpipe's own bags the guessed map names /adl/affordance (a 32FC1 image, not depth), and the dataset it
+    ingests holds the recorded map, not zeros."""
+    proc = run_module("ingest", "--suggest-config", mcap_bags[0], check=True)
+    guessed = yaml.safe_load(proc.stdout)
+    assert guessed["affordance"] == "/adl/affordance" and guessed["depth"] == "/camera/depth/image_raw"
+    cfg = tmp_path / "guessed.yaml"
+    cfg.write_text(proc.stdout)
+    run_module("ingest", mcap_bags[0], "-o", tmp_path / "x.h5", "--config", cfg, "--size", "48", check=True)
+    with h5py.File(tmp_path / "x.h5") as f:
+        ep = schema.read_episode(f, schema.episode_names(f)[0])
+    assert ep.has_affordance and ep.affordance.max() > 0.5

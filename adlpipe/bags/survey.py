@@ -121,6 +121,9 @@ def suggest_config(s: Survey) -> str:
     """A topic-map YAML guessed from the bag, with comments saying what was guessed and why."""
     by_type = lambda *types: sorted(t for t, x in s.topics.items() if x.msgtype in types)  # noqa: E731
     images = by_type("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+    # a float image named for affordances is the affordance map (its 32FC1 encoding would otherwise read as depth)
+    affordance = [t for t in images if "affordance" in t.lower()]
+    images = [t for t in images if t not in affordance]
     color = [t for t in images if s.topics[t].kind == "color"]
     depth = [t for t in images if s.topics[t].kind == "depth"]
     infos = by_type("sensor_msgs/msg/CameraInfo")
@@ -140,7 +143,8 @@ def suggest_config(s: Survey) -> str:
     d = pick(depth, ("aligned", "registered", "depth_to_rgb", "depth"))
     lines.append(f"# depth images (16UC1 mm / 32FC1 m / compressedDepth): {depth or 'none: depth stays null'}")
     lines.append(f"depth: {d or 'null'}")
-    lines.append("affordance: null  # real robots have no affordance topic; the stored map stays zeros")
+    lines.append(f"affordance: {affordance[0]}  # image topics named affordance: {affordance}" if affordance else
+                 "affordance: null  # no affordance topic (real robots rarely have one); the stored map stays zeros")
     joints = by_type("sensor_msgs/msg/JointState")
     lines.append(f"joints: {joints[0] if joints else 'null'}  # JointState topics: {joints or 'none'}")
     strings = by_type("std_msgs/msg/String")
