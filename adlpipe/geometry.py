@@ -74,16 +74,31 @@ class TfBuffer:
         i = bisect.bisect_right(ts, t) - 1
         return ps[max(i, 0)]
 
-    def lookup(self, target: str, source: str, t: float) -> np.ndarray | None:
-        """Pose of `source` in `target` at time t (latest sample at or before t), or None if not connected."""
-        T = np.eye(4)
-        frame = source
+    def _ancestors(self, frame: str, t: float) -> dict[str, np.ndarray]:
+        """Pose of `frame` in itself and in each of its ancestors up to its root, at time t."""
+        out, T = {frame: np.eye(4)}, np.eye(4)
         for _ in range(64):
-            if frame == target:
-                return T
+            if frame not in self.parent:
+                break
+            T = self._at(frame, t) @ T
+            frame = self.parent[frame]
+            if frame in out:  # a cycle in a broken tree
+                break
+            out[frame] = T
+        return out
+
+    def lookup(self, target: str, source: str, t: float) -> np.ndarray | None:
+        """Pose of `source` in `target` at time t (latest sample at or before t), or None if not connected. Any two
+        frames of one tree are connected through their lowest common ancestor (a camera and a robot base both
+        below world, map or odom): up from the source, up from the target, and across."""
+        up = self._ancestors(source, t)
+        T_target, frame = np.eye(4), target  # the target's pose in `frame`
+        for _ in range(64):
+            if frame in up:
+                return np.linalg.inv(T_target) @ up[frame]
             if frame not in self.parent:
                 return None
-            T = self._at(frame, t) @ T
+            T_target = self._at(frame, t) @ T_target
             frame = self.parent[frame]
         return None
 

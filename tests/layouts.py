@@ -52,6 +52,7 @@ class Layout:
     markers: bool = False  # std_msgs/String "start"/"stop" on /segment around each demonstration
     camera_hz: float = 10.0
     tf_hz: float = 50.0
+    root: str | None = None  # a common root (world, map, odom): robot base and camera both hang below it
 
 
 def _moving(t: float) -> list[np.ndarray]:
@@ -84,6 +85,11 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
     cam_pose = (np.array([0.9, -0.5, 0.9]), matrix_to_quat(np.array([[0, -1, 0], [-0.6, 0, -0.8], [0.8, 0, -0.6]])))
     statics = [(robot["base"], "camera_base", cam_pose[0], cam_pose[1]),
                ("camera_base", cam["frame"], np.zeros(3), np.array([1.0, 0, 0, 0]))]
+    if lay.root:  # the room's frame holds both: the base 2 m along x and turned 90 degrees, the camera where it was
+        root_base = pose_matrix([2.0, 0.5, 0.0], [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])
+        root_cam = root_base @ pose_matrix(*cam_pose)
+        statics[0] = (lay.root, "camera_base", root_cam[:3, 3], matrix_to_quat(root_cam[:3, :3]))
+        statics.append((lay.root, robot["base"], root_base[:3, 3], matrix_to_quat(root_base[:3, :3])))
     parent = robot["moving"][-1]
     for child, dz in robot["static"]:
         statics.append((parent, child, np.array([0.0, 0.0, dz]), np.array([1.0, 0, 0, 0])))

@@ -52,6 +52,25 @@ def test_kinova_azure_kinect_with_tool_frame_on_tf_static(tmp_path: Path, fmt: s
     assert ep.depth is not None and ep.joint_pos.shape[1] == 7
 
 
+@pytest.mark.parametrize(("fmt", "root"), [("mcap", "world"), ("bag", "map"), ("db3", "odom")])
+def test_camera_and_robot_under_a_common_root(tmp_path: Path, fmt: str, root: str) -> None:
+    """A scene camera fixed to the room and the robot base both hang below world/map/odom: the camera's pose in the
+    base frame is composed through their common ancestor, and the episode equals the one whose camera hangs off the
+    base directly (same pose, same trajectory, same pixels)."""
+    name = {"mcap": "r.mcap", "bag": "r.bag", "db3": "r"}[fmt]
+    (tmp_path / "direct").mkdir()
+    (tmp_path / "rooted").mkdir()
+    direct, _t, _p = write_layout_bag(tmp_path / "direct" / name, Layout(fmt=fmt))
+    rooted, ee_t, ee_p = write_layout_bag(tmp_path / "rooted" / name, Layout(fmt=fmt, root=root))
+    cfg = tmp_path / "map.yaml"
+    cfg.write_text(yaml.safe_dump(topic_map(Layout(fmt=fmt))))
+    a = _ingest(direct, tmp_path / "direct", TopicMap.load(cfg))
+    b = _ingest(rooted, tmp_path / "rooted", TopicMap.load(cfg))
+    assert np.allclose(a.T_base_camera, b.T_base_camera, atol=1e-9)
+    assert np.abs(b.traj2d - a.traj2d).max() < 1e-6 and np.abs(b.traj3d - a.traj3d).max() < 1e-9
+    assert np.linalg.norm(b.traj3d - _expected_path(ee_t, ee_p, b), axis=1).max() < 1e-3
+
+
 OPTIONAL = ["depth", "affordance", "joints", "task", "tf_static"]
 
 

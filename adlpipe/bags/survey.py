@@ -155,7 +155,8 @@ def suggest_config(s: Survey) -> str:
     lines.append(f"tf_static: {'/tf_static' if '/tf_static' in tfs else 'null'}")
     base, ee, others = _guess_frames(s)
     cam = s.topics[image].frame_id if image else ""
-    linked = bool(cam) and base in _chain(cam.lstrip("/"), s.parent)
+    # connected: the camera hangs below the base, or both below a common root (world, map, odom)
+    linked = bool(cam) and bool(base) and bool(set(_chain(cam.lstrip("/"), s.parent)) & set(_chain(base, s.parent)))
     lines.append(f"# tf roots: {sorted(_roots(s))}; base: the root above the moving frames")
     lines.append(f"base_frame: {base or 'FILL_ME'}")
     lines.append(f"# end-effector candidates (frames carried by the moving links, deepest first): {others}")
