@@ -47,11 +47,12 @@ from .bags.reader import BagSource
 from .bags.segments import find_segments
 from .bags.survey import list_lines, suggest_config, survey
 from .bags.topics import TopicMap
+from .camera import Lens, lens_from_info, project
 from .cli import Parser, int_range
 from .dataset import schema, shards
 from .dataset.frames import FrameWriter
 from .errors import AdlError, run_cli
-from .geometry import matrix_to_quat, project, resample, scale_intrinsics
+from .geometry import matrix_to_quat, resample, scale_intrinsics
 from .lock import exclusive
 
 MAX_COORD_M = 1000.0  # tf translations beyond this are corrupt data, not a robot's workspace
@@ -109,7 +110,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         raise AdlError(f"{bag}: no task name (topic {tm.task} absent or empty); pass --task")
     if any(ord(c) < 32 for c in task) or len(task) > 200:
         raise AdlError(f"{bag}: task name on {tm.task} has control characters or is too long: {task[:60]!r}")
-    K0, camera_frame, T_bc = camera_model(r, tm)
+    K0, camera_frame, T_bc, lens = camera_model(r, tm)
     ee_t, ee_p, t_end, gap_note = end_effector_path(r, tm, allow_tf_gaps)
     notes += [gap_note] if gap_note else []
     traj3d = resample(ee_t, ee_p, 0.0, t_end, n_waypoints)
@@ -144,23 +145,27 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     ep = schema.Episode(
         task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=r.kind,
         duration_s=t_end, stamp0_ns=int(round(r.t_img * 1e9)), base_frame=tm.base_frame, camera_frame=camera_frame,
-        rgb=rgb, affordance=aff_img, traj3d=traj3d, traj2d=project(traj3d, K, T_bc), K=K, T_base_camera=T_bc,
+        rgb=rgb, affordance=aff_img, traj3d=traj3d, traj2d=project(traj3d, K, T_bc, lens, (size, size)), K=K,
+        T_base_camera=T_bc,
         depth=depth_img, has_affordance=aff_msg is not None, object_names=names,
         objects=np.array(poses).reshape(-1, 7), ee_t=ee_t, ee_pos=ee_p,
         joint_t=joint_t, joint_pos=joint_pos,
-        joint_names=r.joint_names if n_joints else [], note="; ".join(notes), segment=segment,
+        joint_names=r.joint_names if n_joints else [], note="; ".join(notes), segment=segment, lens=lens,
     )
     return ep, ep.note
 
 
-def camera_model(r: BagReadout, tm: TopicMap) -> tuple[np.ndarray, str, np.ndarray]:
-    """(intrinsics of the recorded image, camera frame, camera pose in the base frame)."""
+def camera_model(r: BagReadout, tm: TopicMap) -> tuple[np.ndarray, str, np.ndarray, Lens]:
+    """(intrinsics of the recorded image, camera frame, camera pose in the base frame, lens distortion). The lens's
+    coefficients act on normalised coordinates: they hold for the resized image too."""
     h0, w0 = r.image.shape[:2]
     info = r.info
     try:
         K0 = np.asarray(_field(info, "k", "K"), float).reshape(3, 3)
         width, height = int(info.width), int(info.height)
         camera_frame = r.camera_frame or str(info.header.frame_id)
+        lens = lens_from_info(getattr(info, "distortion_model", ""), getattr(info, "d", getattr(info, "D", None)),
+                              f"{r.bag}: topic {tm.camera_info}")
     except (AttributeError, TypeError, ValueError) as exc:
         raise AdlError(f"{r.bag}: topic {tm.camera_info}: CameraInfo lacks field {exc} (k, width, height, "
                        "header)") from None
@@ -172,7 +177,7 @@ def camera_model(r: BagReadout, tm: TopicMap) -> tuple[np.ndarray, str, np.ndarr
         raise AdlError(f"{r.bag}: no tf chain from camera frame {camera_frame!r} to base frame {tm.base_frame!r}")
     if not np.isfinite(T_bc).all() or np.abs(T_bc[:3, 3]).max() > MAX_COORD_M:
         raise AdlError(f"{r.bag}: camera pose from tf ({camera_frame} in {tm.base_frame}) is not finite")
-    return K0, camera_frame, T_bc
+    return K0, camera_frame, T_bc, lens
 
 
 def end_effector_path(r: BagReadout, tm: TopicMap, allow_gaps: bool) -> tuple[np.ndarray, np.ndarray, float, str]:

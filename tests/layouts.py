@@ -52,6 +52,8 @@ class Layout:
     markers: bool = False  # std_msgs/String "start"/"stop" on /segment around each demonstration
     camera_hz: float = 10.0
     tf_hz: float = 50.0
+    lens: tuple[str, tuple[float, ...]] | None = None  # CameraInfo distortion_model and d (None: zeros)
+    top_down: bool = False  # the camera 0.7 m above the workspace looking down (it sees the whole path)
     root: str | None = None  # a common root (world, map, odom): robot base and camera both hang below it
 
 
@@ -83,6 +85,8 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
     K = np.array([[50.0, 0, (width - 1) / 2], [0, 50.0, (height - 1) / 2], [0, 0, 1]])
     events: list[tuple[int, int, str, str, object]] = []
     cam_pose = (np.array([0.9, -0.5, 0.9]), matrix_to_quat(np.array([[0, -1, 0], [-0.6, 0, -0.8], [0.8, 0, -0.6]])))
+    if lay.top_down:
+        cam_pose = (np.array([0.42, 0.12, 1.2]), matrix_to_quat(np.diag([1.0, -1.0, -1.0])))
     statics = [(robot["base"], "camera_base", cam_pose[0], cam_pose[1]),
                ("camera_base", cam["frame"], np.zeros(3), np.array([1.0, 0, 0, 0]))]
     if lay.root:  # the room's frame holds both: the base 2 m along x and turned 90 degrees, the camera where it was
@@ -107,7 +111,8 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
         t = k / lay.camera_hz
         tn = ns(t)
         events.append((tn, 2, cam["camera_info"], M.CAMERA_INFO,
-                       lambda tn=tn: f.camera_info(tn, cam["frame"], K, width, height)))
+                       lambda tn=tn: f.camera_info(tn, cam["frame"], K, width, height,
+                                                   *((lay.lens[0], np.array(lay.lens[1])) if lay.lens else ()))))
         events.append((tn, 3, cam["image"], M.IMAGE,  # made when written: a long bag is never all in memory
                        lambda tn=tn, k=k: f.image(tn, cam["frame"], _noise(k, height, width), "rgb8")))
         if lay.depth:

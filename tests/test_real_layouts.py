@@ -71,6 +71,58 @@ def test_camera_and_robot_under_a_common_root(tmp_path: Path, fmt: str, root: st
     assert np.linalg.norm(b.traj3d - _expected_path(ee_t, ee_p, b), axis=1).max() < 1e-3
 
 
+LENSES = {  # a typical plumb_bob lens, an Azure Kinect's rational_polynomial colour camera, a fisheye
+    "plumb_bob": (-0.28, 0.07, 1e-4, -2e-4, 0.0),
+    "rational_polynomial": (0.52, -2.6, 6e-4, -3e-4, 1.5, 0.4, -2.4, 1.4),
+    "equidistant": (-0.02, 0.03, -0.01, 0.002),
+}
+
+
+@pytest.mark.parametrize(("fmt", "model"), [("mcap", "plumb_bob"), ("bag", "rational_polynomial"),
+                                            ("db3", "equidistant")])
+def test_traj2d_is_where_the_point_appears_through_the_lens(tmp_path: Path, fmt: str, model: str) -> None:
+    """CameraInfo's distortion model and d are kept beside K, and traj2d is the distorted projection, as
+    cv2.projectPoints (cv2.fisheye for equidistant) computes it from the stored K and camera pose."""
+    import cv2
+
+    name = {"mcap": "l.mcap", "bag": "l.bag", "db3": "l"}[fmt]
+    bag, _t, _p = write_layout_bag(tmp_path / name, Layout(fmt=fmt, lens=(model, LENSES[model]),
+                                                                top_down=True))
+    cfg = tmp_path / "map.yaml"
+    cfg.write_text(yaml.safe_dump(topic_map(Layout(fmt=fmt))))
+    ep = _ingest(bag, tmp_path, TopicMap.load(cfg))
+    assert ep.lens.model == model and ep.lens.D == pytest.approx(LENSES[model])
+    inv = np.linalg.inv(ep.T_base_camera)
+    pc = ep.traj3d.astype(float) @ inv[:3, :3].T + inv[:3, 3]
+    zero = np.zeros(3)
+    if model == "equidistant":
+        want, _ = cv2.fisheye.projectPoints(pc[:, None], zero, zero, ep.K, np.array(LENSES[model]))
+    else:
+        want, _ = cv2.projectPoints(pc, zero, zero, ep.K, np.array(LENSES[model]))
+    pinhole = pc @ ep.K.T
+    pinhole = pinhole[:, :2] / pinhole[:, 2:]
+    inside = ((pinhole >= -0.5) & (pinhole <= 47.5)).all(1) & (pc[:, 2] > 0)
+    assert inside.sum() >= 8  # most of the path is in view
+    assert np.abs(ep.traj2d[inside] - want.reshape(-1, 2)[inside]).max() < 1e-3
+    shift = np.linalg.norm(ep.traj2d[inside] - pinhole[inside], axis=1).max()
+    assert shift > 0.3, shift  # the lens really moves the points at this 48 px size
+    # outside the image the lens model does not hold: those points keep their pinhole projection, finite
+    assert np.allclose(ep.traj2d[~inside], pinhole[~inside], atol=1e-2)
+    with h5py.File(tmp_path / "x.h5") as f:  # stored beside K
+        g = f["episodes"][schema.episode_names(f)[0]]
+        assert g.attrs["distortion_model"] == model and len(g["D"]) == len(LENSES[model])
+
+
+def test_an_unknown_distortion_model_is_one_line(tmp_path: Path) -> None:
+    bag, _t, _p = write_layout_bag(tmp_path / "u.mcap", Layout(lens=("kannala_brandt_x", (0.1, 0.1, 0.0, 0.0))))
+    cfg = tmp_path / "map.yaml"
+    cfg.write_text(yaml.safe_dump(topic_map(Layout())))
+    proc = run_module("ingest", bag, "-o", tmp_path / "x.h5", "--config", cfg, "--size", "48")
+    line = one_line_error(proc)
+    assert proc.returncode == 2 and "distortion_model 'kannala_brandt_x'" in line and "camera_info" in line
+    assert not (tmp_path / "x.h5").exists()
+
+
 OPTIONAL = ["depth", "affordance", "joints", "task", "tf_static"]
 
 

@@ -63,15 +63,17 @@ class MessageFactory:
         return self.T[COMPRESSED](header=self.header(t_ns, frame), format=fmt,
                                   data=np.frombuffer(buf.tobytes(), np.uint8))
 
-    def camera_info(self, t_ns: int, frame: str, K: np.ndarray, width: int, height: int) -> object:
+    def camera_info(self, t_ns: int, frame: str, K: np.ndarray, width: int, height: int,
+                    distortion_model: str = "plumb_bob", D: np.ndarray | None = None) -> object:
         P = np.zeros((3, 4))
         P[:, :3] = K
-        fields = {"D": np.zeros(5), "K": K.reshape(9).astype(float), "R": np.eye(3).reshape(9), "P": P.reshape(12)}
+        D = np.zeros(5) if D is None else np.asarray(D, float)
+        fields = {"D": D, "K": K.reshape(9).astype(float), "R": np.eye(3).reshape(9), "P": P.reshape(12)}
         if not self.ros1:
             fields = {k.lower(): v for k, v in fields.items()}
         roi = self.T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
         return self.T[CAMERA_INFO](header=self.header(t_ns, frame), height=height, width=width,
-                                   distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi, **fields)
+                                   distortion_model=distortion_model, binning_x=0, binning_y=0, roi=roi, **fields)
 
     def tf(self, t_ns: int, transforms: list[tuple[str, str, np.ndarray, np.ndarray]]) -> object:
         """transforms: (parent, child, translation xyz, quaternion wxyz)."""

@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from ..camera import PINHOLE, Lens, project, read_lens
 from ..errors import AdlError
-from ..geometry import project
 from . import schema
 from .frames import metres_from_mm
 
@@ -73,14 +73,17 @@ def command_series(g: h5py.Group, where: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def relative_waypoints(t_now: np.ndarray, now: np.ndarray, series_t: np.ndarray, series_p: np.ndarray,
-                       horizon: int, rate_hz: float, K: np.ndarray, T: np.ndarray) -> np.ndarray:
+                       horizon: int, rate_hz: float, K: np.ndarray, T: np.ndarray, lens: Lens = PINHOLE,
+                       size: int | None = None) -> np.ndarray:
     """(F, horizon, 5): the positions of a series (the commanded or the measured end effector) at t_now + 1/rate ..
     t_now + horizon/rate, the last one held after the end, relative to `now` (F, 3): pixels (u, v) from its
-    projection, metres (x, y, z). The closed-loop policies' target format."""
+    projection through the camera's lens, metres (x, y, z). The closed-loop policies' target format."""
     future = np.asarray(t_now, float)[:, None] + np.arange(1, horizon + 1)[None] / rate_hz
     xyz = np.stack([np.interp(future, series_t, series_p[:, d]) for d in range(3)], -1)  # (F, Tp, 3)
     now = np.asarray(now, float)
-    uv = project(xyz.reshape(-1, 3), K, T).reshape(*xyz.shape[:2], 2) - project(now, K, T)[:, None]
+    wh = (size, size) if size else None  # the stored images' size: the lens holds inside them
+    uv = (project(xyz.reshape(-1, 3), K, T, lens, wh).reshape(*xyz.shape[:2], 2)
+          - project(now, K, T, lens, wh)[:, None])
     return np.concatenate([uv, xyz - now[:, None]], -1).astype(np.float32)
 
 
@@ -106,7 +109,8 @@ def compute_window_stats(index: str | Path, names: list[str], windows: Windows) 
         g = files.group(n)
         series_t, series_p, now = anchor_series(g, windows.target, f"{files.files[n]}: episode {n}")
         rel = relative_waypoints(g["frames/t"][()], now, series_t, series_p, windows.horizon, windows.rate_hz,
-                                 g["K"][()], g["T_base_camera"][()]).reshape(-1, ACTION_DIM)
+                                 g["K"][()], g["T_base_camera"][()], read_lens(g),
+                                 int(g["rgb"].shape[1])).reshape(-1, ACTION_DIM)
         state = frame_state(g["frames"])
         lo, hi = np.minimum(lo, rel.min(0)), np.maximum(hi, rel.max(0))
         slo, shi = np.minimum(slo, state.min(0)), np.maximum(shi, state.max(0))
@@ -364,7 +368,7 @@ class WindowDataset(Dataset):
             series_t, series_p, now = anchor_series(g, self.w.target, f"{self.files.files[self.names[e]]}: episode "
                                                     f"{self.names[e]}")
             m.update(t=fr["t"][()], state=frame_state(fr), series_t=series_t, series_p=series_p, now=now,
-                     K=g["K"][()], T=g["T_base_camera"][()])
+                     K=g["K"][()], T=g["T_base_camera"][()], lens=read_lens(g), size=int(g["rgb"].shape[1]))
         if len(self._metas) >= 256:
             self._metas.pop(next(iter(self._metas)))
         self._metas[e] = m
@@ -393,7 +397,7 @@ class WindowDataset(Dataset):
             ahead = np.minimum(np.arange(k, k + self.w.horizon), len(m["action"]) - 1)
             return obs, m["state"][idx], m["action"][ahead]
         target = relative_waypoints(m["t"][k:k + 1], m["now"][k:k + 1], m["series_t"], m["series_p"],
-                                    self.w.horizon, self.w.rate_hz, m["K"], m["T"])[0]
+                                    self.w.horizon, self.w.rate_hz, m["K"], m["T"], m["lens"], m["size"])[0]
         return obs, m["state"][idx], target
 
     def _images(self, g: h5py.Group, m: dict, k: int, idx: list[int]) -> np.ndarray:

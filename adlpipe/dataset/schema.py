@@ -9,13 +9,15 @@ per bag, one run folder per ingest: adlpipe.dataset.shards). The index links eac
     /episodes/<name>/          one group per bag (or per demonstration of a segmented bag);
                                <name> = "<task_slug>-<sha256[:16]>" [+ "-s<segment>"]
         attrs: task, source_path, source_sha256, source_format, duration_s, stamp0_ns, base_frame,
-               camera_frame, has_depth, has_affordance, note (what a --recover ingest lost)
+               camera_frame, has_depth, has_affordance, note (what a --recover ingest lost),
+               distortion_model (CameraInfo's: plumb_bob, rational_polynomial, equidistant; "" = pinhole)
         rgb          (H, W, 3) uint8     first camera frame, resized to image_size
         depth        (H, W)    float32   metres, NaN = no return (only if has_depth)
         affordance   (H, W)    float32   [0, 1] Gaussian blobs (zeros if the bag had none)
         traj3d       (N, 3)    float32   end-effector path in base_frame, metres, N waypoints evenly in time
-        traj2d       (N, 2)    float32   traj3d projected into rgb, pixels (u right, v down)
+        traj2d       (N, 2)    float32   traj3d projected into rgb, pixels (u right, v down), through the lens
         K            (3, 3)    float64   intrinsics of the stored rgb
+        D            (k,)      float64   distortion coefficients of distortion_model (empty: pinhole)
         T_base_camera (4, 4)   float64   camera optical frame pose in base_frame
         objects      (M, 7)    float64   initial pose (x y z qw qx qy qz) in base_frame; attr names
         series/ee_t  (P,) float64 s from the first image; series/ee_pos (P, 3) base_frame
@@ -35,6 +37,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from ..camera import PINHOLE, Lens, read_lens
 from ..errors import AdlError
 
 FORMAT_VERSION = 2  # 2: every frame, sharded; 1: the first frame only, one file
@@ -68,6 +71,7 @@ class Episode:
     joint_names: list[str] = field(default_factory=list)
     note: str = ""  # e.g. what a --recover ingest of a truncated bag lost
     segment: int = -1  # the demonstration's index in a bag holding several; -1: the whole bag
+    lens: Lens = PINHOLE  # the camera's distortion (CameraInfo's model and d): traj2d is where points appear
 
     @property
     def name(self) -> str:
@@ -188,6 +192,8 @@ def write_episode(g: h5py.Group, ep: Episode) -> None:
     g.create_dataset("traj3d", data=ep.traj3d.astype(np.float32))
     g.create_dataset("traj2d", data=ep.traj2d.astype(np.float32))
     g.create_dataset("K", data=ep.K.astype(np.float64))
+    g.attrs["distortion_model"] = ep.lens.model  # "" for the pinhole
+    g.create_dataset("D", data=ep.lens.array().astype(np.float64))
     g.create_dataset("T_base_camera", data=ep.T_base_camera.astype(np.float64))
     obj = g.create_dataset("objects", data=ep.objects.astype(np.float64).reshape(-1, 7))
     obj.attrs["names"] = [str(n) for n in ep.object_names]
@@ -213,7 +219,7 @@ def read_episode(f: h5py.File, name: str) -> Episode:
         object_names=[str(n) for n in g["objects"].attrs["names"]], objects=g["objects"][()],
         ee_t=s["ee_t"][()], ee_pos=s["ee_pos"][()], joint_t=s["joint_t"][()], joint_pos=s["joint_pos"][()],
         joint_names=[str(n) for n in s["joint_pos"].attrs["joint_names"]], note=str(a.get("note", "")),
-        segment=int(a.get("segment", -1)),
+        segment=int(a.get("segment", -1)), lens=read_lens(g),
     )
 
 

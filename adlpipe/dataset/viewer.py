@@ -27,7 +27,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from ..atomic import atomic_path
-from ..geometry import project
+from ..camera import project, read_lens
 from . import schema
 
 EE_COLOR = [250, 200, 40]
@@ -75,7 +75,7 @@ def _episode(rec: rr.RecordingStream, g: object, index: int, start: float, frame
     ee = fr["ee_pos"][()].astype(float)
     joints, names = fr["joint_pos"][()], [str(n) for n in g["series/joint_pos"].attrs["joint_names"]]
     gripper = fr["gripper"][()]
-    uv = project(ee, K, T)
+    uv = project(ee, K, T, read_lens(g), (size, size))  # where the end effector appears in the stored (distorted) image
     rec.set_time("dataset_time", duration=start)
     rec.set_time("frame", sequence=frame)
     rec.set_time("episode", sequence=index)
