@@ -31,7 +31,7 @@ def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progre
     tmp = out.with_name(f".{out.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        with schema.open_dataset(data, names or []) as f:
+        with schema.open_dataset(data, names or None) as f:  # every episode it reads is checked
             names = names or schema.episode_names(f)
             if not names:
                 raise AdlError(f"{data}: no episodes to export")

@@ -261,6 +261,7 @@ class _EpisodeFiles:
             if len(self._open) >= self.limit:
                 self._open.pop(next(iter(self._open))).close()
             self._open[path] = h5py.File(path, "r")
+            schema.check_self_contained(self._open[path], f"{path}: episode {name}")
         return self._open[path][schema.EPISODES][name]
 
     def __getstate__(self) -> dict:

@@ -152,9 +152,74 @@ def open_dataset(path: Path | str, names: list[str] | None = None) -> Iterator[h
         if missing:
             raise AdlError(f"{path}: {len(missing)} episode(s) named by the split are not in the dataset "
                            f"(e.g. {missing[0]!r}); re-run python -m adlpipe.split on this file")
+        files = {n: episode_path(path, f, n) for n in present}  # every link resolved and confined (no file is
+        # opened for this) before HDF5 follows any of them
         for n in wanted:
-            check_episode(f[EPISODES][n], f"{path}:{n}")
+            file = files[n]
+            g = f[EPISODES][n]
+            if Path(g.file.filename).resolve() != file:
+                raise AdlError(f"{path}: episode {n}: HDF5 opened {g.file.filename} instead of {file}")
+            check_self_contained(g.file, f"{path}: episode {n}")
+            check_episode(g, f"{path}:{n}")
         yield f
+
+
+def shards_root(index: Path) -> Path:
+    """adl.h5 -> adl.shards beside it: the only folder a dataset's episode files may lie in."""
+    return index.with_name(index.stem + ".shards") if index.suffix else index.with_name(index.name + ".shards")
+
+
+def episode_path(index: Path | str, f: h5py.File, name: str) -> Path:
+    """The file holding episode `name`, resolved by adlpipe rather than by HDF5's link search path (which tries
+    HDF5_EXT_PREFIX first and the current folder last): a relative link to /episodes/<name> in a file inside the
+    dataset's .shards folder (after resolving symlinks) that exists. Anything else is one line naming the episode
+    and the target."""
+    index = Path(index)
+    link = f[EPISODES].get(name, getlink=True)
+    if isinstance(link, h5py.HardLink):  # an episode stored in the index itself
+        return index.resolve()
+    if not isinstance(link, h5py.ExternalLink):
+        raise AdlError(f"{index}: episode {name}: a {type(link).__name__}, not a link into {shards_root(index).name}/")
+    target = str(link.filename)
+    if link.path != f"/{EPISODES}/{name}":
+        raise AdlError(f"{index}: episode {name}: links to {link.path!r} in {target}, not to its own group")
+    root = shards_root(index).resolve()
+    resolved = (index.parent / target).resolve()
+    if Path(target).is_absolute() or not resolved.is_relative_to(root):
+        raise AdlError(f"{index}: episode {name}: links to {target}, outside the dataset's {root.name} folder; "
+                       "refused (a dataset reads only its own files)")
+    if not resolved.is_file():
+        raise AdlError(f"{index}: episode {name}: its file {index.parent / target} is missing (was {root.name}/ "
+                       "moved, renamed or deleted apart from the index?)")
+    return resolved
+
+
+def check_self_contained(f: h5py.File, where: str) -> None:
+    """An episode file must hold its own bytes: no dataset with external raw storage (it reads any file the user
+    can), no virtual dataset, no link into another file."""
+    bad: list[str] = []
+
+    def visit(name: str, link: object) -> None:
+        if isinstance(link, h5py.ExternalLink):
+            bad.append(f"{name} links to {link.filename}")
+            return
+        if isinstance(link, h5py.HardLink):
+            obj = f.get(name)
+            if isinstance(obj, h5py.Dataset):
+                if obj.external:
+                    bad.append(f"{name} stores its data in {obj.external[0][0]!r}")
+                elif obj.is_virtual:
+                    bad.append(f"{name} is a virtual dataset over {obj.virtual_sources()[0].file_name!r}")
+
+    if f.filename in _CHECKED:
+        return
+    f.visititems_links(visit)
+    if bad:
+        raise AdlError(f"{where}: {bad[0]}; refused (a dataset reads only its own files)")
+    _CHECKED.add(f.filename)
+
+
+_CHECKED: set[str] = set()  # episode files already checked by this process (a reader opens them again)
 
 
 def check_episode(g: h5py.Group, where: str) -> None:

@@ -28,10 +28,7 @@ from ..atomic import atomic_path
 from ..errors import AdlError
 from . import schema
 
-
-def shards_dir(index: Path) -> Path:
-    """adl.h5 -> adl.shards beside it."""
-    return index.with_name(index.stem + ".shards") if index.suffix else index.with_name(index.name + ".shards")
+shards_dir = schema.shards_root  # adl.h5 -> adl.shards beside it
 
 
 SHARE_CATALOG = "catalog.json"
@@ -103,7 +100,8 @@ def gather(index: Path) -> dict[str, int]:
             raise AdlError(f"{d}: {share_attrs[0]} waypoints at {share_attrs[1]} px, the dataset has {attrs[0]} at "
                            f"{attrs[1]} px; ingest every share with the same --waypoints and --size")
         attrs = share_attrs
-        rows = [dict(r, file=f"{root.name}/{d.name}/{r['file']}") for r in cat["rows"] if r["key"] not in known]
+        rows = [dict(r, file=f"{root.name}/{d.name}/{r['file']}") for r in _share_rows(d, cat)
+                if r["key"] not in known]
         known |= {r["key"] for r in rows}
         new += rows
         if not rows and d.name not in named:
@@ -115,6 +113,26 @@ def gather(index: Path) -> dict[str, int]:
     for d in root.glob(".share-*.tmp") if root.is_dir() else []:
         shutil.rmtree(d, ignore_errors=True)
     return {"shares": len(folders), "new": len(new), "episodes": len(old) + len(new)}
+
+
+def _share_rows(d: Path, cat: dict) -> list[dict[str, str]]:
+    """A share catalog's rows, each naming an episode file that exists inside the share's folder (a name such as
+    ../../x would become a link out of the dataset): one line naming the catalog and the row otherwise."""
+    rows = cat.get("rows")
+    if not isinstance(rows, list):
+        raise AdlError(f"{d / SHARE_CATALOG}: no list of rows")
+    for r in rows:
+        if not isinstance(r, dict) or not all(isinstance(r.get(k), str) and r.get(k) for k in schema.CATALOG_FIELDS):
+            raise AdlError(f"{d / SHARE_CATALOG}: a row without the text fields {list(schema.CATALOG_FIELDS)}: "
+                           f"{str(r)[:80]}")
+        target = (d / r["file"]).resolve()
+        if Path(r["file"]).is_absolute() or not target.is_relative_to(d.resolve()):
+            raise AdlError(f"{d / SHARE_CATALOG}: episode {r['name']} names {r['file']!r}, outside its share; "
+                           "refused, nothing was gathered")
+        if not target.is_file():
+            raise AdlError(f"{d / SHARE_CATALOG}: episode {r['name']}: its file {r['file']} is missing; nothing "
+                           "was gathered")
+    return rows
 
 
 def write_index(index: Path, rows: list[dict[str, str]], n_waypoints: int, image_size: int) -> None:
@@ -163,6 +181,6 @@ def _alive(pid: int) -> bool:
 
 
 def episode_file(index: Path, f: h5py.File, name: str) -> Path:
-    """The episode file an index links `name` to (readers that open episode files directly, e.g. a DataLoader)."""
-    link = f[schema.EPISODES].get(name, getlink=True)
-    return index.parent / link.filename
+    """The episode file an index links `name` to (readers that open episode files directly, e.g. a DataLoader),
+    confined to the dataset's .shards folder (schema.episode_path)."""
+    return schema.episode_path(index, f, name)
