@@ -4,7 +4,9 @@
 
 Both checkpoints of each model are evaluated: "best" (best.pt, the epoch with the lowest validation px) and "last"
 (model.pt). Per checkpoint, sampler and step count: mean per-waypoint error in pixels of the stored image (its size
-is stated; px224 rescales it to a 224 px image, the paper's input) and centimetres (3D), per task and overall;
+is stated; px224 is that figure rescaled by 224 / size, the paper's input size, not a measurement on 224 px images)
+and centimetres (3D), per task and overall, each overall mean with its 95 % bootstrap interval over the test
+episodes (adlpipe.stats) and the per-episode errors kept for paired comparisons;
 best-of-K error over K samples (how well the samples cover the demonstrated mode); mode commitment on the
 two-mode tasks (the share of the K samples that lie nearer one of the scene's two demonstrated modes than their
 average; both modes are rebuilt in the simulator from the stored scene, adlpipe.sim.modes); inference milliseconds
@@ -37,6 +39,7 @@ from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import latency_ms, predict
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
 from .runtime import Placement, add_device_args
+from .stats import mean_interval
 
 STEPS = [1, 2, 4, 8, 16]
 DEFAULTS = {name: f"{DEFAULT_METHOD[kind]}/{DEFAULT_STEPS[kind]}" for name, (kind, _net) in MODELS.items()}
@@ -137,8 +140,11 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
                 "model": cfg.model, "method": method, "steps": steps, "epoch": int(ck.get("epoch", 0)),
                 "default": key == DEFAULTS.get(cfg.model),
                 "evaluations": policy.objective.evaluations(steps, method), "image_px": image_px,
-                "input_px": cfg.image_size, "px": float(px.mean()),
+                "input_px": cfg.image_size, "px": float(px.mean()), "px_ci": list(mean_interval(px.tolist())),
                 "px224": float(px.mean()) * PAPER_IMAGE_PX / image_px, "cm": float(cm.mean()),
+                "cm_ci": list(mean_interval(cm.tolist())), "n": len(px),
+                # per test episode, in the split's order: what a paired comparison of two models needs
+                "px_per_episode": [round(float(v), 4) for v in px], "cm_per_episode": [round(float(v), 4) for v in cm],
                 "px_multimodal": float(px[mm].mean()) if mm else None,
                 "cm_multimodal": float(cm[mm].mean()) if mm else None,
                 f"best_of_{k}_px": float(best_px.mean()), f"best_of_{k}_cm": float(best_cm.mean()),
@@ -152,10 +158,13 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
 def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
     """One row per model, checkpoint, sampler and step count."""
     any_row = next(r for ck in results.values() for rows in ck.values() for r in rows.values())
-    lines = [f"px: pixels of the {any_row['image_px']} px stored image (models see {any_row['input_px']} px); "
-             f"px224: the same error on a {PAPER_IMAGE_PX} px image. best: the checkpoint with the lowest validation "
-             "px; last: the final one.", "",
-             f"| method | checkpoint (epoch) | converged | sampler | steps | px | px224 | cm | ms | best-of-{k} px | "
+    lines = [f"px: pixels of the {any_row['image_px']} px stored image (models see {any_row['input_px']} px), the "
+             f"mean over {any_row['n']} test episodes with its 95 % bootstrap interval; px224: px x {PAPER_IMAGE_PX}/"
+             f"{any_row['image_px']}, a rescaling to the paper's image size, not a measurement on {PAPER_IMAGE_PX} px "
+             "images; cm likewise with its interval. best: the checkpoint with the lowest validation px; last: the "
+             "final one.", "",
+             f"| method | checkpoint (epoch) | converged | sampler | steps | px [95 %] | px224 | cm [95 %] | ms | "
+             f"best-of-{k} px | "
              "px (multimodal tasks) | mode commitment |",
              "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for model, by_ck in results.items():
@@ -165,9 +174,14 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
                 mm = f"{r['px_multimodal']:.2f}" if r["px_multimodal"] is not None else "-"
                 com = f"{r['commitment']:.0%}" if r.get("commitment") is not None else "-"
                 lines.append(f"| {model} | {ck} ({r['epoch']}) | {conv} | {r['method']} | {r['steps']} | "
-                             f"{r['px']:.2f} | {r['px224']:.2f} | {r['cm']:.2f} | {r['ms']:.1f} | "
+                             f"{_ci(r, 'px')} | {r['px224']:.2f} | {_ci(r, 'cm')} | {r['ms']:.1f} | "
                              f"{r[f'best_of_{k}_px']:.2f} | {mm} | {com} |")
     return "\n".join(lines) + "\n"
+
+
+def _ci(r: dict, key: str) -> str:
+    lo, hi = r.get(f"{key}_ci") or (float("nan"), float("nan"))
+    return f"{r[key]:.2f} [{lo:.2f}, {hi:.2f}]"
 
 
 def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -> dict:
@@ -189,11 +203,12 @@ def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -
 
 
 def steps_csv(results: dict[str, dict], steps_list: list[int]) -> str:
-    """Wide CSV for `dvc plots`: one row per step count, columns <model>_<sampler>_{px,cm,ms}. A regressor does
-    not depend on steps: its single figure is repeated as a flat reference line."""
+    """Wide CSV for `dvc plots`: one row per step count, columns <model>_<sampler>_{px,cm,ms}, of the best
+    checkpoints (as the report's figures). A regressor does not depend on steps: its single figure is repeated as a
+    flat reference line."""
     series: dict[str, dict[int, dict]] = {}
     for model, by_ck in results.items():
-        for r in by_ck["last"].values():
+        for r in by_ck["best"].values():
             series.setdefault(f"{model}_{r['method']}", {})[r["steps"]] = r
     cols = [f"{name}_{m}" for name in series for m in ("px", "cm", "ms")]
     f = io.StringIO()

@@ -244,14 +244,57 @@ def _read_log(path: Path) -> dict[str, list[float]]:
     return cols
 
 
+def headline_lines(ev: dict, rp: dict) -> list[str]:
+    """One row per model, before the detail: its default sampler's error with intervals on the best checkpoint,
+    its latency, whether it converged and its open-loop success (replay) when there is one."""
+    lines = ["| model | sampler | steps | px [95 %] | cm [95 %] | ms | converged | success (replay) |",
+             "| --- | --- | ---: | ---: | ---: | ---: | --- | ---: |"]
+    success = rp.get("success", {})
+    for model, by_ck in ev.get("models", {}).items():
+        rows = list(by_ck.get("best", {}).values())
+        r = next((x for x in rows if x.get("default")), None) or (min(rows, key=lambda x: x["steps"]) if rows else None)
+        if r is None:
+            continue
+        conv = {True: "yes", False: "**no**", None: "?"}[ev.get("training", {}).get(model, {}).get("converged")]
+        ok = success.get(f"{model}/{r['method']}-{r['steps']}") or success.get(model)  # replay's labels
+        cells = [f"{r[k]:.2f} [{r[k + '_ci'][0]:.2f}, {r[k + '_ci'][1]:.2f}]" if r.get(k + "_ci") else f"{r[k]:.2f}"
+                 for k in ("px", "cm")]
+        lines.append(f"| {model} | {r['method']} | {r['steps']} | {cells[0]} | {cells[1]} | {r['ms']:.1f} | {conv} | "
+                     f"{'-' if ok is None else rate_cell(round(ok['overall'] * ok['n']), ok['n'])} |")
+    return lines
+
+
+def model_styles(models: list[str]) -> dict[str, dict]:
+    """A colour per model (none shared) and a line style per objective family, so no two series look alike."""
+    import matplotlib
+
+    colours = matplotlib.colormaps["tab10"].colors
+    dash = {"fm": "-", "dp": "--", "bc": ":", "mf": "-."}
+    return {m: {"color": colours[i % len(colours)], "linestyle": dash.get(m.split("_")[0], "-")}
+            for i, m in enumerate(models)}
+
+
+def label_steps(ax: object, steps: list[int]) -> None:
+    """A log step axis labelled with the step counts themselves (not only 10^0 and 10^1)."""
+    from matplotlib.ticker import FixedLocator, NullLocator, ScalarFormatter
+
+    ax.set_xscale("log")
+    ax.xaxis.set_major_locator(FixedLocator(sorted(set(steps))))
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_locator(NullLocator())
+
+
 def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> list[Path]:
-    """The seed's Fig. 2 (train/test loss FM vs DP), val px vs epoch, px and ms vs steps, as PNG files."""
+    """The seed's Fig. 2 (train/test loss FM vs DP, one panel each: their losses are of different objectives),
+    val px vs epoch, px and ms vs steps (all models on a log axis, and beside it the models within 3x of the best on
+    a linear one, so one far-off model does not hide the others' differences), as PNG files."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     made = []
+    styles = model_styles(list(ev.get("models", {})) or list(logs))
 
     def save(fig, name: str) -> None:  # noqa: ANN001
         path = out_dir / name
@@ -262,40 +305,51 @@ def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> list[Path]:
 
     read = {m: _read_log(p) for m, p in logs.items() if p.exists()}
     if read:
-        fig, ax = plt.subplots(figsize=(6, 4))
-        for m in ("fm_cnn", "dp_cnn"):
-            if m in read:
-                ax.plot(read[m]["epoch"], read[m]["train_loss"], label=f"{m} train")
-                pts = [(e, v) for e, v in zip(read[m]["epoch"], read[m]["test_loss"], strict=False)
-                       if not math.isnan(v)]  # measured with each validation
-                if pts:
-                    ax.plot(*zip(*pts, strict=True), "--", label=f"{m} test")
-        ax.set(xlabel="epoch", ylabel="loss (own objective)", yscale="log", title="Train and test loss, FM vs DP")
-        ax.legend()
+        pair = [m for m in ("fm_cnn", "dp_cnn") if m in read]
+        fig, axes = plt.subplots(1, max(len(pair), 1), figsize=(5.5 * max(len(pair), 1), 4), squeeze=False)
+        for ax, m in zip(axes[0], pair, strict=False):
+            ax.plot(read[m]["epoch"], read[m]["train_loss"], color=styles.get(m, {}).get("color"), label="train")
+            pts = [(e, v) for e, v in zip(read[m]["epoch"], read[m]["test_loss"], strict=False)
+                   if not math.isnan(v)]  # measured with each validation
+            if pts:
+                ax.plot(*zip(*pts, strict=True), "--", color="black", label="test")
+            ax.set(xlabel="epoch", ylabel=f"{m} loss (its own objective)", yscale="log", title=m)
+            ax.legend()
+        fig.suptitle("Train and test loss, FM vs DP (separate axes: different objectives)")
         save(fig, "loss_fm_vs_dp.png")
         fig, ax = plt.subplots(figsize=(6, 4))
         for m, cols in read.items():
             pts = [(e, v) for e, v in zip(cols["epoch"], cols.get("val_px", []), strict=False) if not math.isnan(v)]
             if pts:
-                ax.plot(*zip(*pts, strict=True), marker=".", label=m)
+                ax.plot(*zip(*pts, strict=True), marker=".", label=m, **styles.get(m, {}))
         ax.set(xlabel="epoch", ylabel="val px (default sampler)", yscale="log", title="Validation error vs epoch")
-        ax.legend()
+        ax.legend(fontsize=7)
         save(fig, "val_px_vs_epoch.png")
     for key, ylabel, name in (("px", "px (test, best checkpoint)", "px_vs_steps.png"),
                               ("ms", "ms per sample, batch 1", "ms_vs_steps.png")):
-        fig, ax = plt.subplots(figsize=(6, 4))
+        series: list[tuple[str, str, list]] = []
         for model, by_ck in ev.get("models", {}).items():
-            series: dict[str, list] = {}
+            per: dict[str, list] = {}
             for r in by_ck.get("best", {}).values():
-                series.setdefault(r["method"], []).append((r["steps"], r[key]))
-            for method, pts in series.items():
-                pts.sort()
-                if len(pts) == 1:
-                    ax.axhline(pts[0][1], ls=":", label=f"{model}")
+                per.setdefault(r["method"], []).append((r["steps"], r[key]))
+            series += [(model, method, sorted(pts)) for method, pts in per.items()]
+        steps = sorted({s for _m, _k, pts in series for s, _v in pts})
+        lowest = min((v for _m, _k, pts in series for _s, v in pts), default=1.0)
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for ax, zoom in zip(axes, (False, True), strict=True):
+            for model, method, pts in series:
+                if zoom and min(v for _s, v in pts) > 3 * lowest:
+                    continue
+                style = dict(styles.get(model, {}))
+                if len(pts) == 1:  # a regressor: one figure for every step count
+                    style["linestyle"] = ":"
+                    ax.axhline(pts[0][1], label=model, **style)
                 else:
-                    ax.plot(*zip(*pts, strict=True), marker="o", label=f"{model} {method}")
-        ax.set(xlabel="sampling steps", ylabel=ylabel, xscale="log", yscale="log", title=f"{key} vs steps")
-        ax.legend(fontsize=7)
+                    ax.plot(*zip(*pts, strict=True), marker="o", label=f"{model} {method}", **style)
+            label_steps(ax, steps or [1])
+            ax.set(xlabel="sampling steps", ylabel=ylabel, yscale="linear" if zoom else "log",
+                   title=f"{key} vs steps" + (" (within 3x of the best, linear)" if zoom else " (all, log)"))
+            ax.legend(fontsize=6)
         save(fig, name)
     return made
 
@@ -321,6 +375,7 @@ def main(argv: list[str] | None = None) -> int:
     parts = ["# adlpipe report", "",
              f"Test episodes: {ev['n_test']} (error), {rp['episodes']} (replay, {rp.get('checkpoint', 'best')} "
              "checkpoints). Figures of the best validation checkpoints with each model's default sampler.", "",
+             "## Headline: each model's default sampler, best checkpoint", "", *headline_lines(ev, rp), "",
              "## The paper's claims on this data", "", *compared, "",
              "## Convergence (same optimiser steps for every model)", "", *convergence_lines(ev), "",
              "A model is converged when its best val px fell by at most 2 % over the last fifth of training; a claim "
@@ -333,7 +388,9 @@ def main(argv: list[str] | None = None) -> int:
         parts += ["## Mode commitment", "", *modes, ""]
     if args.closed_loop is not None and args.closed_loop.exists():
         parts += ["## Closed loop vs open loop (success %)", "", *closed_loop_lines(rp, _load(args.closed_loop)), ""]
-    for t in (args.table1, args.table2, args.table2_closed_loop):
+    if args.table1.exists():
+        parts += ["## Table 1 in detail: every checkpoint, sampler and step count", "", args.table1.read_text(), ""]
+    for t in (args.table2, args.table2_closed_loop):
         if t.exists():
             parts += [t.read_text().replace("# ", "## ", 1), ""]
     write_text_atomic(args.output, "\n".join(parts))

@@ -71,6 +71,10 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
         "sweep the trash", "pass the water", "hang the towel", "put on the hat", "cover the food", "wipe the forearm",
         "feed the human"}
     assert row["image_px"] == 32 and row["px224"] == pytest.approx(row["px"] * 224 / 32)
+    # every mean with its bootstrap interval over the test episodes, whose errors are kept for paired comparisons
+    assert row["n"] == 10 and len(row["px_per_episode"]) == 10
+    assert np.mean(row["px_per_episode"]) == pytest.approx(row["px"], abs=1e-3)
+    assert row["px_ci"][0] < row["px"] < row["px_ci"][1] and row["cm_ci"][0] < row["cm"] < row["cm_ci"][1]
     for dp in ("dp_cnn", "dp_cnn_epsilon"):
         assert sorted(ev["models"][dp]["last"]) == ["ddim/1", "ddim/16", "ddpm/1", "ddpm/16", "ddpm_trailing/1",
                                                     "ddpm_trailing/16"]
@@ -80,6 +84,9 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
         assert ev["training"][model]["optimizer_steps"] == ev["training"]["fm_cnn"]["optimizer_steps"]
     report = (pipeline / "reports" / "report.md").read_text()
     assert "## Success rate" in report
+    headline_rows = report.split("## Headline")[1].split("\n## ")[0]  # one row per model, before the detail
+    assert headline_rows.count("\n| ") == len(MODELS) + 2 and "| fm_cnn | euler | 1 | " in headline_rows
+    assert report.index("## Headline") < report.index("## Table 1 in detail")
     assert "FM-1 about as accurate as DP-16 (within 10% or better; clean-trajectory output for both)" in report
     assert "FM-1 about as accurate as DP-16 (within 10% or better; the paper's pair: velocity vs noise" in report
     assert "## Mode commitment" in report and "| fm_cnn | 16 |" in report
@@ -89,7 +96,7 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert "exact McNemar p = " in report and "## Where the failed rollouts fail" in report
     assert "| open loop: fm_cnn/euler-1 (first frame -> whole trajectory) |" in report
     assert "FM better than BC (U-Net for both" in report and "FM-1 much faster than DP-16" in report
-    assert "px: pixels of the 32 px stored image" in report
+    assert "px: pixels of the 32 px stored image" in report and "a rescaling to the paper's image size" in report
     for fig in ("loss_fm_vs_dp", "val_px_vs_epoch", "px_vs_steps", "ms_vs_steps"):
         png = pipeline / "reports" / "figures" / f"{fig}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"(figures/{fig}.png)" in report

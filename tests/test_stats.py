@@ -26,3 +26,41 @@ def test_mcnemar_counts_only_the_discordant_scenes() -> None:
     assert paired_success([True, False], [True, False]).p_value == 1.0  # no discordant scene: nothing to decide
     with pytest.raises(ValueError, match="different lengths"):
         paired_success([True], [True, False])
+
+
+def test_bootstrap_interval_of_a_mean() -> None:
+    """The percentile bootstrap of a mean agrees with the normal approximation on a large sample, is reproducible,
+    and collapses to the value when nothing varies."""
+    import numpy as np
+
+    from adlpipe.stats import mean_cell, mean_interval
+
+    x = np.random.default_rng(4).normal(2.0, 1.0, 400)
+    lo, hi = mean_interval(x)
+    half = 1.96 * x.std(ddof=1) / np.sqrt(len(x))  # ~0.098
+    assert lo == pytest.approx(x.mean() - half, abs=0.02) and hi == pytest.approx(x.mean() + half, abs=0.02)
+    assert mean_interval(x) == (lo, hi)  # seeded: a table re-made from the same episodes prints the same interval
+    assert mean_interval([0.5, 0.5, 0.5]) == (0.5, 0.5) and mean_interval([0.7]) == (0.7, 0.7)
+    assert mean_cell([0.0, 1.0] * 50) == "0.500 [0.400, 0.600]"
+
+
+def test_report_figures_tell_every_series_apart_and_label_the_steps() -> None:
+    """X.5: no two models share a colour (BC-CNN and BC-Transformer were the same blue dotted line), and the log
+    step axis is labelled with the step counts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from adlpipe.policy.models import MODELS
+    from adlpipe.report import label_steps, model_styles
+
+    styles = model_styles(sorted(MODELS))
+    assert len({s["color"] for s in styles.values()}) == len(MODELS)
+    assert styles["bc_cnn"]["linestyle"] == ":" and styles["fm_cnn"]["linestyle"] == "-"
+    fig, ax = plt.subplots()
+    ax.plot([1, 2, 4, 16], [3, 2, 2, 1])
+    label_steps(ax, [1, 2, 4, 16])
+    fig.canvas.draw()
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["1", "2", "4", "16"]
+    plt.close(fig)
