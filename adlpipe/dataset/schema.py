@@ -183,14 +183,22 @@ def episode_path(index: Path | str, f: h5py.File, name: str) -> Path:
     target = str(link.filename)
     if link.path != f"/{EPISODES}/{name}":
         raise AdlError(f"{index}: episode {name}: links to {link.path!r} in {target}, not to its own group")
-    root = shards_root(index).resolve()
-    resolved = (index.parent / target).resolve()
-    if Path(target).is_absolute() or not resolved.is_relative_to(root):
-        raise AdlError(f"{index}: episode {name}: links to {target}, outside the dataset's {root.name} folder; "
-                       "refused (a dataset reads only its own files)")
+    root = shards_root(index)
+    return confined_file(index.parent, target, root,
+                         outside=f"{index}: episode {name}: links to {target}, outside the dataset's {root.name} "
+                         "folder; refused (a dataset reads only its own files)",
+                         missing=f"{index}: episode {name}: its file {index.parent / target} is missing (was "
+                         f"{root.name}/ moved, renamed or deleted apart from the index?)")
+
+
+def confined_file(base: Path, relative: str, root: Path, outside: str, missing: str) -> Path:
+    """`relative` resolved from `base`, which must be a file inside `root` once symlinks are resolved; otherwise
+    the one-line error `outside` (absolute, or out of `root`) or `missing` (no file there)."""
+    resolved = (base / relative).resolve()
+    if Path(relative).is_absolute() or not resolved.is_relative_to(root.resolve()):
+        raise AdlError(outside)
     if not resolved.is_file():
-        raise AdlError(f"{index}: episode {name}: its file {index.parent / target} is missing (was {root.name}/ "
-                       "moved, renamed or deleted apart from the index?)")
+        raise AdlError(missing)
     return resolved
 
 

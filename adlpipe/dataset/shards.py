@@ -125,13 +125,11 @@ def _share_rows(d: Path, cat: dict) -> list[dict[str, str]]:
         if not isinstance(r, dict) or not all(isinstance(r.get(k), str) and r.get(k) for k in schema.CATALOG_FIELDS):
             raise AdlError(f"{d / SHARE_CATALOG}: a row without the text fields {list(schema.CATALOG_FIELDS)}: "
                            f"{str(r)[:80]}")
-        target = (d / r["file"]).resolve()
-        if Path(r["file"]).is_absolute() or not target.is_relative_to(d.resolve()):
-            raise AdlError(f"{d / SHARE_CATALOG}: episode {r['name']} names {r['file']!r}, outside its share; "
-                           "refused, nothing was gathered")
-        if not target.is_file():
-            raise AdlError(f"{d / SHARE_CATALOG}: episode {r['name']}: its file {r['file']} is missing; nothing "
-                           "was gathered")
+        schema.confined_file(d, r["file"], d,
+                             outside=f"{d / SHARE_CATALOG}: episode {r['name']} names {r['file']!r}, outside its "
+                             "share; refused, nothing was gathered",
+                             missing=f"{d / SHARE_CATALOG}: episode {r['name']}: its file {r['file']} is missing; "
+                             "nothing was gathered")
     return rows
 
 
