@@ -1,6 +1,12 @@
 """Summarise evaluation and replay into one markdown report: the paper's claims, each supported or not on this data,
 and the figures as PNG beside it (no CDN needed to see them).
 
+An accuracy claim ("FM-1 within 10 % of DP-16", "FM better than BC") is decided on the test episodes both models
+ran, paired: supported only when the 95 % bootstrap interval of the per-episode difference excludes zero the
+claimed way, contradicted when it excludes it the other way, otherwise not resolved at that n (with about how many
+episodes would resolve it at the observed effect); a model that did not converge makes it no finding at all.
+Success rates are compared by McNemar's exact test on the same scenes.
+
     python -m adlpipe.report --eval metrics/eval_details.json --replay metrics/replay_details.json -o reports/report.md
 """
 
@@ -15,7 +21,7 @@ from pathlib import Path
 from .atomic import atomic_path, check_outputs, write_text_atomic
 from .cli import Parser
 from .errors import AdlError, run_cli
-from .stats import paired_success, rate_cell
+from .stats import paired_difference, paired_success, rate_cell
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
 AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px
@@ -69,6 +75,21 @@ def _verdict(holds: bool, not_converged: list[str]) -> str:
     return "**supported**" if holds else "**not supported**"
 
 
+def _paired_verdict(a: dict, b: dict, not_converged: list[str], scale: float = 1.0) -> str:
+    """The claim "a's px is below scale x b's" on the episodes both were evaluated on: supported or contradicted
+    only when the paired 95 % bootstrap interval of the per-episode difference excludes zero, else not resolved
+    (adlpipe.stats.PairedDifference); never a finding when a model it rests on is not converged."""
+    if a.get("px_per_episode") and b.get("px_per_episode"):
+        d = paired_difference(a["px_per_episode"], b["px_per_episode"], scale)
+        verdict, detail = d.verdict(), f" ({d} px)"
+    else:  # details written before per-episode errors were kept
+        verdict = "supported" if a["px"] <= scale * b["px"] else "contradicted"
+        detail = " (unpaired: no per-episode errors)"
+    if not_converged:
+        return f"**not a finding** ({', '.join(not_converged)}; measured: {verdict}){detail}"
+    return f"**{verdict}**{detail}"
+
+
 def _instability(ev: dict, model: str) -> float | None:
     """How much val px goes back up over the second half of training: the mean rise of log val px between
     successive validations (falls count as zero: a curve still improving is not unstable)."""
@@ -105,9 +126,9 @@ def claims(ev: dict, rp: dict) -> list[str]:
         fm1, fm16 = _row(ev, fm, "euler", 1), _row(ev, fm, "euler", 16)
         dp16 = _row(ev, dp, "ddpm", 16)
         if fm1 and dp16:
-            holds = fm1["px"] <= (1 + AS_ACCURATE) * dp16["px"]
+            verdict = _paired_verdict(fm1, dp16, _converged(ev, fm, dp), 1 + AS_ACCURATE)
             out.append(f"- FM-1 about as accurate as DP-16 (within {100 * AS_ACCURATE:.0f}% or better; {pair}): "
-                       f"{_verdict(holds, _converged(ev, fm, dp))}. {fm} 1 step {fm1['px']:.2f} px "
+                       f"{verdict}. {fm} 1 step {fm1['px']:.2f} px "
                        f"({fm1['px224']:.2f} px at 224) vs {dp} 16 DDPM steps {dp16['px']:.2f} px "
                        f"({dp16['px224']:.2f}); replay {sr(f'{fm}/euler-1')} vs {sr(f'{dp}/ddpm-16')}"
                        f"{paired(f'{fm}/euler-1', f'{dp}/ddpm-16')}.")
@@ -116,9 +137,9 @@ def claims(ev: dict, rp: dict) -> list[str]:
                        f"{'**supported**' if ratio >= FAST_RATIO else '**not supported**'}. {fm1['ms']:.1f} vs "
                        f"{dp16['ms']:.1f} ms per sample, batch 1, encoder included ({ratio:.1f}x).")
         if fm16 and dp16:
-            holds = fm16["px"] <= dp16["px"]
-            out.append(f"- At equal steps (16), {fm} vs {dp}: {_verdict(holds, _converged(ev, fm, dp))} "
-                       f"that FM is at least as accurate: {fm16['px']:.2f} vs {dp16['px']:.2f} px.")
+            out.append(f"- At equal steps (16), {fm} more accurate than {dp}: "
+                       f"{_paired_verdict(fm16, dp16, _converged(ev, fm, dp))}. {fm16['px']:.2f} vs "
+                       f"{dp16['px']:.2f} px.")
         s_fm, s_dp = _instability(ev, fm), _instability(ev, dp)
         if s_fm is not None and s_dp is not None:
             out.append(f"- FM more stable in training than DP ({pair}): "
@@ -128,11 +149,11 @@ def claims(ev: dict, rp: dict) -> list[str]:
     for fm, bc, net in (("fm_cnn", "bc_cnn", "U-Net"), ("fm_transformer", "bc_transformer", "transformer")):
         f, b = _row(ev, fm, "euler", 1), _row(ev, bc, "direct", 1)
         if f and b:
-            holds = f["px"] < b["px"]
             mm = (f"; multimodal tasks {f['px_multimodal']:.2f} vs {b['px_multimodal']:.2f} px"
                   if f.get("px_multimodal") is not None and b.get("px_multimodal") is not None else "")
             out.append(f"- FM better than BC ({net} for both, only the objective differs): "
-                       f"{_verdict(holds, _converged(ev, fm, bc))}. 1 step {f['px']:.2f} vs {b['px']:.2f} px{mm}; "
+                       f"{_paired_verdict(f, b, _converged(ev, fm, bc))}. 1 step {f['px']:.2f} vs {b['px']:.2f} "
+                       f"px{mm}; "
                        f"replay {sr(f'{fm}/euler-1')} (16 steps: {sr(f'{fm}/euler-16')}) vs {sr(bc)}"
                        f"{paired(f'{fm}/euler-1', bc)}.")
     return out

@@ -9,6 +9,7 @@ from the same episodes prints the same interval).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -71,3 +72,41 @@ def mean_cell(values: Sequence[float], digits: int = 3) -> str:
     """'0.912 [0.897, 0.925]': the mean and its bootstrap interval."""
     lo, hi = mean_interval(values)
     return f"{np.mean(values):.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+@dataclass(frozen=True)
+class PairedDifference:
+    """The mean of per-episode differences first - second (lower is better: an error), its 95 % bootstrap interval
+    and the number of episodes; verdict() applies the claim rule."""
+
+    mean: float
+    low: float
+    high: float
+    n: int
+
+    def verdict(self) -> str:
+        """'supported' when the interval lies below zero (first lower, as claimed), 'contradicted' when above,
+        otherwise 'not resolved at n = N' with about how many episodes would resolve it at this effect size (the
+        interval's half-width shrinks as 1/sqrt(n))."""
+        if self.high < 0:
+            return "supported"
+        if self.low > 0:
+            return "contradicted"
+        half = (self.high - self.low) / 2
+        if self.mean == 0 or half == 0:
+            return f"not resolved at n = {self.n}"
+        need = math.ceil(self.n * (half / abs(self.mean)) ** 2)
+        return f"not resolved at n = {self.n} (about {need} episodes would resolve it at this effect size)"
+
+    def __str__(self) -> str:
+        return f"paired difference {self.mean:+.2f} [{self.low:+.2f}, {self.high:+.2f}], n = {self.n}"
+
+
+def paired_difference(first: Sequence[float], second: Sequence[float], scale: float = 1.0) -> PairedDifference:
+    """The paired bootstrap of first_i - scale * second_i over episodes (the same episodes, in the same order):
+    scale 1.1 tests "first within 10 % of second or better"."""
+    if len(first) != len(second):
+        raise ValueError(f"paired figures of different lengths: {len(first)} and {len(second)}")
+    d = np.asarray(first, float) - scale * np.asarray(second, float)
+    lo, hi = mean_interval(d)
+    return PairedDifference(float(d.mean()), lo, hi, len(d))

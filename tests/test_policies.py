@@ -337,3 +337,28 @@ def test_a_flat_but_far_worse_baseline_is_no_finding() -> None:
     near = "\n".join(claims(ev(2.3), {}))
     assert f"FM-1 about as accurate as DP-16 (within 10% or better; {pair}): **supported**" in near
     assert "the paper's pair" not in near  # only the pairs that were trained
+
+
+def test_claims_rest_on_the_paired_interval_of_per_episode_errors() -> None:
+    """Q.2: with per-episode errors the claim is supported only when the paired bootstrap interval of the
+    difference excludes zero the claimed way, contradicted when it excludes it the other way, else not resolved,
+    with the episodes that would resolve it."""
+    import numpy as np
+
+    from adlpipe.report import claims
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(1.5, 3.0, 40)  # per-episode difficulty, shared by both models: what pairing removes
+
+    def ev(fm_shift: float) -> dict:
+        fm, bc = base + fm_shift + rng.normal(0, 0.05, 40), base + rng.normal(0, 0.05, 40)
+        rows = {"fm_cnn": ("euler/1", fm), "bc_cnn": ("direct/1", bc)}
+        models = {m: {"best": {k: {"px": float(v.mean()), "px224": 0.0, "ms": 4.0, "px_per_episode": v.tolist()}}}
+                  for m, (k, v) in rows.items()}
+        return {"models": models, "training": {m: {"converged": True} for m in rows}}
+
+    line = lambda e: next(c for c in claims(e, {}) if c.startswith("- FM better than BC"))  # noqa: E731
+    assert "**supported** (paired difference -0." in line(ev(-0.1))  # 0.1 px better on every episode
+    assert "**contradicted** (paired difference +0." in line(ev(0.1))
+    unresolved = line(ev(0.005))
+    assert "**not resolved at n = 40 (about " in unresolved and "episodes would resolve it" in unresolved

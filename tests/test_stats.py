@@ -64,3 +64,14 @@ def test_report_figures_tell_every_series_apart_and_label_the_steps() -> None:
     fig.canvas.draw()
     assert [t.get_text() for t in ax.get_xticklabels()] == ["1", "2", "4", "16"]
     plt.close(fig)
+
+
+def test_paired_difference_verdicts() -> None:
+    from adlpipe.stats import paired_difference
+
+    a, b = [1.0, 2.0, 3.0, 4.0] * 10, [1.2, 2.2, 3.1, 4.3] * 10
+    assert paired_difference(a, b).verdict() == "supported" and paired_difference(b, a).verdict() == "contradicted"
+    d = paired_difference([1.0, 2.0] * 10, [1.1, 1.93] * 10)  # -0.015 on average, -0.1 or +0.07 per episode
+    assert d.verdict().startswith("not resolved at n = 20 (about ") and d.low < 0 < d.high
+    assert paired_difference([2.0] * 5, [2.0] * 5).verdict() == "not resolved at n = 5"
+    assert paired_difference([1.0], [1.0], scale=1.1).mean == pytest.approx(-0.1)  # within 10 % of the second
