@@ -131,9 +131,10 @@ def test_the_state_variant_records_trains_from_memory_and_curves(pusht_data: Pat
         assert np.allclose(first["state"][:, 16:], g[schema.EPISODES][names[0]]["frames/state"][()])
         source = str(f[schema.EPISODES][names[0]].attrs["source_path"])
     seed = int(Path(source).stem.rsplit("_", 1)[1])  # push_the_T_<initial condition>.mcap
-    env = make_env(48)
-    env.reset(seed=seed)
-    at_reset = keypoint_state(env.unwrapped)
+    env = make_env(48, "environment_state_agent_pos")  # what the benchmark gives a state-only policy
+    obs, _ = env.reset(seed=seed)
+    at_reset = np.concatenate([obs["environment_state"], obs["agent_pos"]])
+    assert np.array_equal(at_reset, keypoint_state(env.unwrapped))  # the recorder's formula is gym-pusht's
     env.close()
     with schema.open_dataset(data) as f:
         assert np.allclose(f[schema.EPISODES][names[0]]["frames/state"][0], at_reset, atol=1e-6)

@@ -35,8 +35,9 @@ CONTACT_POINTS = 20
 MAX_APPROACH = 30  # control steps
 
 
-def make_env(observation_size: int = 96) -> object:
-    """gym-pusht's environment with pixel and agent-position observations (one line if the extra is missing)."""
+def make_env(observation_size: int = 96, obs_type: str = "pixels_agent_pos") -> object:
+    """gym-pusht's environment with pixel and agent-position observations, or another of its observation types
+    (one line if the extra is missing)."""
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame draws off screen
     try:
         import gym_pusht  # noqa: F401 - registers the environment
@@ -44,7 +45,7 @@ def make_env(observation_size: int = 96) -> object:
     except ImportError as exc:
         raise AdlError(f"Push-T needs gym-pusht ({exc.name} is missing): pip install -e '.[pusht]' && "
                        "pip install --no-deps gym-pusht==0.1.8") from None
-    return gym.make(ENV_ID, obs_type="pixels_agent_pos", render_mode="rgb_array",
+    return gym.make(ENV_ID, obs_type=obs_type, render_mode="rgb_array",
                     observation_width=observation_size, observation_height=observation_size,
                     max_episode_steps=MAX_STEPS)
 
@@ -278,11 +279,14 @@ def run_policy(plan: object, seed: int, execute: int, n_obs: int, size: int = 96
     states: the agent's position per frame (the image policies' state), or for a `state_only` policy the keypoint
     state (keypoint_state, the low-dimensional setting). Returns score (the highest coverage reached), success
     (coverage above 0.95 at some step) and plans made."""
-    env = make_env(size)
-    u = env.unwrapped
+    # A state-only policy gets gym-pusht's own low-dimensional observation (no frame is rendered for it), the same
+    # 18 values the recorder stores (keypoint_state; tests/test_pusht.py checks they agree).
+    env = make_env(size, "environment_state_agent_pos" if state_only else "pixels_agent_pos")
 
-    def observe(obs: dict) -> tuple[np.ndarray, np.ndarray]:
-        return obs["pixels"], keypoint_state(u) if state_only else np.asarray(obs["agent_pos"], float)
+    def observe(obs: dict) -> tuple[np.ndarray | None, np.ndarray]:
+        if state_only:
+            return None, np.concatenate([obs["environment_state"], obs["agent_pos"]]).astype(np.float64)
+        return obs["pixels"], np.asarray(obs["agent_pos"], float)
 
     try:
         obs, _info = env.reset(seed=seed)
