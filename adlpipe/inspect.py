@@ -82,8 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
     p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
     p.add_argument("--episodes", nargs="+",
-                   help="test-split indices or episode names (default: the first test episode; with --dataset, "
-                   "every episode)")
+                   help="episode names, or indices: with --model, positions in the test split (default: the first "
+                   "test episode); with --dataset, positions in the dataset's catalog, the order ingest added them "
+                   "(default: every episode)")
     p.add_argument("--samples", type=int_range(1, 1000), default=4, help="predicted samples drawn per episode")
     p.add_argument("--steps", type=int_range(1, 100), default=4)
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
@@ -138,8 +139,8 @@ def pick_episodes(wanted: list[str], indexed: list[str], indexed_what: str, all_
 
 def record_dataset(args: object) -> int:
     with schema.open_dataset(args.data) as f:
-        all_names = schema.episode_names(f)
-    names = pick_episodes(args.episodes or [], all_names, str(args.data), all_names, args.data) or all_names
+        catalog = [r["name"] for r in schema.read_catalog(f)] or schema.episode_names(f)  # ingest order
+    names = pick_episodes(args.episodes or [], catalog, f"{args.data}'s catalog", catalog, args.data) or catalog
     if not names:
         raise AdlError(f"{args.data}: no episodes to record")
     frames = write_dataset_recording(args.output, args.data, names)

@@ -32,7 +32,7 @@ def test_the_dataset_recording_holds_every_frame_of_the_selection(ingested: Path
     from conftest import run_module
 
     with schema.open_dataset(ingested) as f:
-        names = schema.episode_names(f)
+        names = [r["name"] for r in schema.read_catalog(f)]  # catalog order: what --episodes indices count in
         frames = {n: len(f[schema.EPISODES][n]["frames/t"]) for n in names}
         joint1 = np.concatenate([f[schema.EPISODES][n]["frames/joint_pos"][:, 0] for n in names])
         ee = {n: f[schema.EPISODES][n]["frames/ee_pos"][()] for n in names}
