@@ -25,6 +25,7 @@ Writes --metrics (headline), --details (per episode) and --table (the Table 2 re
 from __future__ import annotations
 
 import importlib
+import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -45,7 +46,7 @@ from .policy.models import MODELS
 from .policy.objectives import DDPM
 from .runtime import Placement
 from .sim.kitchen import TASKS as KITCHEN_TASKS
-from .stats import mean_interval, success_interval
+from .stats import mean_interval, paired_difference, paired_success, success_interval
 
 FIRST_SEED = 100_000
 
@@ -245,10 +246,33 @@ def plot_curves(curves: dict, refs: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def paired_lines(details: dict) -> list[str]:
+    """Every two rows of a details file compared on the initial conditions both ran: the paired bootstrap of the
+    per-episode score difference and McNemar's exact test on success."""
+    rows = {f"{r['model']}-{r['steps']}" + (f" ({r['checkpoint']})" if r.get("checkpoint", "last") != "last" else ""):
+            {e["seed"]: e for e in r["per_episode"]} for r in details.get("results", [])}
+    out = []
+    names = list(rows)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            both = sorted(set(rows[a]) & set(rows[b]))
+            if not both:
+                continue
+            # higher scores are better: the difference of negated scores is "a lower" = "a better"
+            d = paired_difference([-rows[a][s]["score"] for s in both], [-rows[b][s]["score"] for s in both])
+            ok = paired_success([rows[a][s]["success"] for s in both], [rows[b][s]["success"] for s in both])
+            out.append(f"- {a} vs {b}: score {-d.mean:+.3f} [{-d.high:+.3f}, {-d.low:+.3f}], {a} better: "
+                       f"{d.verdict()}; success {ok}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = Parser("python -m adlpipe.benchmark", __doc__)
     p.add_argument("--env", choices=sorted(BENCHMARKS), default="pusht")
-    p.add_argument("--models", nargs="+", type=Path, required=True)
+    p.add_argument("--models", nargs="+", type=Path)
+    p.add_argument("--compare", type=Path, metavar="DETAILS",
+                   help="run nothing: compare every two rows of a details file written before, paired on the "
+                   "initial conditions both ran (bootstrap of the score difference, McNemar on success)")
     p.add_argument("--steps", nargs="+", type=int_range(1, 100), default=[2, 16],
                    help="sampling steps of the generative models (BC: its one prediction)")
     p.add_argument("--dp-sampler", choices=DDPM.methods, default="ddpm",
@@ -271,6 +295,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--table", type=Path, help="default: reports/<env>.md")
     p.add_argument("--curve-plot", type=Path, help="with --curve; default: reports/<env>_curves.png")
     args = p.parse_args(argv)
+    if args.compare:
+        try:
+            print("\n".join(paired_lines(json.loads(args.compare.read_text()))))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise AdlError(f"{args.compare}: not a benchmark details file ({type(exc).__name__}: {exc})") from exc
+        return 0
+    if not args.models:
+        p.error("--models is required (or --compare DETAILS)")
     bench = BENCHMARKS[args.env]
     metrics = args.metrics or Path(f"metrics/{args.env}.json")
     details = args.details or Path(f"metrics/{args.env}_details.json")

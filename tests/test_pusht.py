@@ -78,6 +78,10 @@ def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path
         lo, hi = r["score_ci"]  # the bootstrap interval holds the mean; Wilson's the rate
         assert lo <= r["score"] <= hi and r["success_ci"][0] <= r["success"] <= r["success_ci"][1]
     assert "| fm_cnn | 2 | last |" in (out / "t.md").read_text()
+    compared = run_module("benchmark", "--compare", out / "d.json", check=True).stdout.splitlines()
+    assert len(compared) == 6  # 4 rows (2 models x best/last), every pair, on the same 2 initial conditions
+    assert any(ln.startswith("- fm_cnn-2 vs bc_cnn-1: score ") and "McNemar" in ln for ln in compared)
+    assert "not a benchmark details file" in one_line_error(run_module("benchmark", "--compare", out / "t.md"))
     refs = details["references"]
     assert refs["demonstrator"]["success"] == 1.0 and refs["demonstrator"]["score"] > 0.95
     assert refs["no action"]["success"] == 0.0 and refs["no action"]["score"] < 0.9
