@@ -171,9 +171,9 @@ def shards_root(index: Path) -> Path:
 
 def episode_path(index: Path | str, f: h5py.File, name: str) -> Path:
     """The file holding episode `name`, resolved by adlpipe rather than by HDF5's link search path (which tries
-    HDF5_EXT_PREFIX first and the current folder last): a relative link to /episodes/<name> in a file inside the
-    dataset's .shards folder (after resolving symlinks) that exists. Anything else is one line naming the episode
-    and the target."""
+    HDF5_EXT_PREFIX first and the current folder last): a relative link to /episodes/<name> in a file that exists
+    inside a .shards folder beside the index (after resolving symlinks). Anything else is one line naming the
+    episode and the target."""
     index = Path(index)
     link = f[EPISODES].get(name, getlink=True)
     if isinstance(link, h5py.HardLink):  # an episode stored in the index itself
@@ -183,7 +183,10 @@ def episode_path(index: Path | str, f: h5py.File, name: str) -> Path:
     target = str(link.filename)
     if link.path != f"/{EPISODES}/{name}":
         raise AdlError(f"{index}: episode {name}: links to {link.path!r} in {target}, not to its own group")
-    root = shards_root(index)
+    # its own <stem>.shards, or the .shards folder beside it that the link names (an index copied under another
+    # name keeps linking into the folder it was written with)
+    first = Path(target).parts[0] if Path(target).parts else ""
+    root = index.parent / first if first.endswith(".shards") and first not in (".", "..") else shards_root(index)
     return confined_file(index.parent, target, root,
                          outside=f"{index}: episode {name}: links to {target}, outside the dataset's {root.name} "
                          "folder; refused (a dataset reads only its own files)",
