@@ -81,7 +81,8 @@ def _paired_verdict(a: dict, b: dict, not_converged: list[str], scale: float = 1
     (adlpipe.stats.PairedDifference); never a finding when a model it rests on is not converged."""
     if a.get("px_per_episode") and b.get("px_per_episode"):
         d = paired_difference(a["px_per_episode"], b["px_per_episode"], scale)
-        verdict, detail = d.verdict(), f" ({d} px)"
+        of = f", of first - {scale:g} x second" if scale != 1 else ""  # the tolerance is part of the claim
+        verdict, detail = d.verdict(), f" ({d} px{of})"
     else:  # details written before per-episode errors were kept
         verdict = "supported" if a["px"] <= scale * b["px"] else "contradicted"
         detail = " (unpaired: no per-episode errors)"

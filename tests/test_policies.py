@@ -362,3 +362,4 @@ def test_claims_rest_on_the_paired_interval_of_per_episode_errors() -> None:
     assert "**contradicted** (paired difference +0." in line(ev(0.1))
     unresolved = line(ev(0.005))
     assert "**not resolved at n = 40 (about " in unresolved and "episodes would resolve it" in unresolved
+    assert "x second" not in unresolved  # FM vs BC has no tolerance
