@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from .errors import AdlError
+from .geometry import in_camera, pinhole
 
 COEFFICIENTS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
 
@@ -63,10 +64,8 @@ def project(points: np.ndarray, K: np.ndarray, T_base_camera: np.ndarray, lens: 
     frame) with intrinsics K and `lens`. size (width, height): the lens model holds only over the image it was
     calibrated on (outside, its polynomial folds back and grows without bound), so points whose pinhole projection
     falls outside the image keep that pinhole projection."""
-    T = np.linalg.inv(T_base_camera)
-    pc = np.asarray(points, float).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
-    uv = pc @ np.asarray(K, float).T
-    uv = uv[:, :2] / uv[:, 2:3]
+    pc = in_camera(points, T_base_camera)
+    uv = pinhole(pc, K)
     if not lens.distorts:
         return uv
     inside = np.ones(len(uv), bool) if size is None else (

@@ -124,12 +124,22 @@ def resample(times: np.ndarray, values: np.ndarray, t_start: float, t_end: float
     return np.stack([np.interp(tq, times, values[:, k]) for k in range(values.shape[1])], axis=1)
 
 
-def project(points: np.ndarray, K: np.ndarray, T_base_camera: np.ndarray) -> np.ndarray:
-    """Pixel coordinates (u, v) of base-frame points seen by a camera at T_base_camera (ROS optical frame)."""
+def in_camera(points: np.ndarray, T_base_camera: np.ndarray) -> np.ndarray:
+    """Base-frame points (N, 3) in the frame of a camera at T_base_camera (ROS optical frame)."""
     T = np.linalg.inv(T_base_camera)
-    pc = points @ T[:3, :3].T + T[:3, 3]
-    uv = pc @ K.T
+    return np.asarray(points, float).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+
+
+def pinhole(pc: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (u, v) of camera-frame points through the undistorted intrinsics K."""
+    uv = pc @ np.asarray(K, float).T
     return uv[:, :2] / uv[:, 2:3]
+
+
+def project(points: np.ndarray, K: np.ndarray, T_base_camera: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (u, v) of base-frame points seen by a pinhole camera at T_base_camera (ROS optical frame);
+    a camera with a lens: adlpipe.camera.project."""
+    return pinhole(in_camera(points, T_base_camera), K)
 
 
 def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
