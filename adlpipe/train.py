@@ -205,8 +205,7 @@ def training_batches(train_ds: Dataset, cfg: ModelConfig, batch_size: int, seed:
     """A state-only closed-loop model's windows from memory (no per-sample loading: a batch is one gather) when they
     fit; otherwise streamed."""
     if isinstance(train_ds, WindowDataset) and not cfg.use_image:
-        size = cfg.state_dim + cfg.horizon * cfg.action_dim
-        if memory_bytes(train_ds, size, 0) <= MAX_BYTES:
+        if memory_bytes(train_ds, cfg.state_dim + cfg.horizon * cfg.action_dim) <= MAX_BYTES:
             every = copy.copy(train_ds)  # the same windows, item i = window i
             every.draws = None
             return MemoryBatches(every, batch_size, len(train_ds), seed, ranks.world, ranks.rank)

@@ -303,6 +303,11 @@ def compute_action_stats(index: str | Path, names: list[str]) -> dict[str, list[
             **padded_range(np.min(states, 0), np.max(states, 0), "state_")}
 
 
+def pass_permutation(seed: int, n_pass: int, n: int) -> np.ndarray:
+    """The order of all n windows in pass n_pass over them (seeded: a resumed run draws what it would have)."""
+    return np.random.default_rng([seed, n_pass, 3]).permutation(n)
+
+
 class WindowDataset(Dataset):
     """Every frame of every episode as a training window (Diffusion Policy's sequence sampler): observation frames
     t-To+1..t stacked as channels (the first frame repeated before the start) with the end effector's position at
@@ -351,7 +356,7 @@ class WindowDataset(Dataset):
         pos = (self.epoch if epoch is None else epoch) * self.draws + i
         n_pass, k = divmod(pos, len(self.items))
         if self._perm[0] != n_pass:
-            self._perm = (n_pass, np.random.default_rng([self.seed, n_pass, 3]).permutation(len(self.items)))
+            self._perm = (n_pass, pass_permutation(self.seed, n_pass, len(self.items)))
         return self.items[int(self._perm[1][k])]
 
     def _meta(self, e: int) -> dict:

@@ -14,13 +14,14 @@ from collections.abc import Iterator
 import numpy as np
 import torch
 
-from .loader import WindowDataset
+from .loader import WindowDataset, pass_permutation
 
 MAX_BYTES = 1 << 30  # more than this: stream them (train falls back to the loader)
 
 
-def memory_bytes(windows: WindowDataset, state_size: int, target_size: int) -> int:
-    return len(windows.items) * (state_size + target_size) * 4
+def memory_bytes(windows: WindowDataset, values_per_window: int) -> int:
+    """What holding every window as float32 takes."""
+    return len(windows.items) * values_per_window * 4
 
 
 class MemoryBatches:
@@ -53,7 +54,7 @@ class MemoryBatches:
         out = np.empty(self.draws, int)
         for p in np.unique(pos // n):
             at = pos // n == p
-            out[at] = np.random.default_rng([self.seed, int(p), 3]).permutation(n)[pos[at] % n]
+            out[at] = pass_permutation(self.seed, int(p), n)[pos[at] % n]
         return out
 
     def __iter__(self) -> Iterator[tuple]:
