@@ -46,7 +46,7 @@ from .policy.models import MODELS
 from .policy.objectives import DDPM
 from .runtime import Placement
 from .sim.kitchen import TASKS as KITCHEN_TASKS
-from .stats import mean_interval, paired_difference, paired_success, success_interval
+from .stats import interval_cell, mean_interval, paired_difference, paired_success, success_interval
 
 FIRST_SEED = 100_000
 
@@ -155,8 +155,7 @@ def _tasks_cell(r: dict) -> str:
 
 
 def _score_cell(r: dict) -> str:
-    lo, hi = r["score_ci"]
-    return f"{r['score']:.3f} [{lo:.3f}, {hi:.3f}]"
+    return interval_cell(r["score"], r["score_ci"])
 
 
 def _success_cell(r: dict) -> str:

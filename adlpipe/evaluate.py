@@ -39,7 +39,7 @@ from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import latency_ms, predict
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
 from .runtime import Placement, add_device_args
-from .stats import mean_interval
+from .stats import interval_cell, mean_interval
 
 STEPS = [1, 2, 4, 8, 16]
 DEFAULTS = {name: f"{DEFAULT_METHOD[kind]}/{DEFAULT_STEPS[kind]}" for name, (kind, _net) in MODELS.items()}
@@ -180,8 +180,7 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
 
 
 def _ci(r: dict, key: str) -> str:
-    lo, hi = r.get(f"{key}_ci") or (float("nan"), float("nan"))
-    return f"{r[key]:.2f} [{lo:.2f}, {hi:.2f}]"
+    return interval_cell(r[key], r.get(f"{key}_ci") or (float("nan"), float("nan")), 2)
 
 
 def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -> dict:

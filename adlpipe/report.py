@@ -21,7 +21,7 @@ from pathlib import Path
 from .atomic import atomic_path, check_outputs, write_text_atomic
 from .cli import Parser
 from .errors import AdlError, run_cli
-from .stats import paired_difference, paired_success, rate_cell
+from .stats import interval_cell, paired_difference, paired_success, rate_cell
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
 AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px
@@ -279,8 +279,7 @@ def headline_lines(ev: dict, rp: dict) -> list[str]:
             continue
         conv = {True: "yes", False: "**no**", None: "?"}[ev.get("training", {}).get(model, {}).get("converged")]
         ok = success.get(f"{model}/{r['method']}-{r['steps']}") or success.get(model)  # replay's labels
-        cells = [f"{r[k]:.2f} [{r[k + '_ci'][0]:.2f}, {r[k + '_ci'][1]:.2f}]" if r.get(k + "_ci") else f"{r[k]:.2f}"
-                 for k in ("px", "cm")]
+        cells = [interval_cell(r[k], r[k + "_ci"], 2) if r.get(k + "_ci") else f"{r[k]:.2f}" for k in ("px", "cm")]
         lines.append(f"| {model} | {r['method']} | {r['steps']} | {cells[0]} | {cells[1]} | {r['ms']:.1f} | {conv} | "
                      f"{'-' if ok is None else rate_cell(round(ok['overall'] * ok['n']), ok['n'])} |")
     return lines

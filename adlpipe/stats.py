@@ -68,10 +68,15 @@ def mean_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float,
     return float(ci.low), float(ci.high)
 
 
+def interval_cell(value: float, interval: Sequence[float], digits: int = 3) -> str:
+    """'0.912 [0.897, 0.925]': a figure and its interval, as every table prints them."""
+    lo, hi = interval
+    return f"{value:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
 def mean_cell(values: Sequence[float], digits: int = 3) -> str:
-    """'0.912 [0.897, 0.925]': the mean and its bootstrap interval."""
-    lo, hi = mean_interval(values)
-    return f"{np.mean(values):.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+    """The mean of `values` and its bootstrap interval, as a table cell."""
+    return interval_cell(float(np.mean(values)), mean_interval(values), digits)
 
 
 @dataclass(frozen=True)
