@@ -80,7 +80,7 @@ def _policy(path: str) -> tuple:
     return load_policy(Path(path), Placement())
 
 
-def _episode(job: tuple) -> tuple[str, str, int, dict]:
+def _episode(job: tuple) -> tuple[str, str | int, int, dict]:
     from .policy.inference import predict
 
     env, model_dir, checkpoint, path, steps, method, seed, execute = job
@@ -142,8 +142,8 @@ def check_model(d: Path, bench: Benchmark) -> dict:
 
 def curve_checkpoints(d: Path) -> list[tuple[int, Path]]:
     """(optimiser step, path) of the checkpoints train --save-every kept along training, in order."""
-    found = sorted((int(p.stem.split("_")[1]), p) for p in (d / "checkpoints").glob("step_*.pt")
-                   if p.stem.split("_")[1].isdigit())
+    found = sorted((int(p.stem[len("step_"):]), p) for p in (d / "checkpoints").glob("step_*.pt")
+                   if p.stem[len("step_"):].isdigit())
     if not found:
         raise AdlError(f"{d}: no checkpoints along training in {d / 'checkpoints'}; train it with --save-every N "
                        "for --curve")
@@ -320,16 +320,16 @@ def main(argv: list[str] | None = None) -> int:
                      for ck in args.checkpoints for i in range(args.episodes)]
         if args.curve:
             steps = 1 if bc else args.curve_steps
-            curve_jobs += [(args.env, str(d), f"step {n}", str(path), steps, method, args.seed + i, args.execute)
-                           for n, path in curve_checkpoints(d) for i in range(curve_eps)]
+            curve_jobs += [(args.env, str(d), n, str(path), steps, method, args.seed + i, args.execute)
+                           for n, path in curve_checkpoints(d) for i in range(curve_eps)]  # checkpoint: its step
     per: dict = {}
     along: dict = {}
     ref_eps: dict = {}
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         for label, ck, steps, episode in pool.map(_episode, jobs):
             per.setdefault((label, steps, ck), []).append(episode)
-        for label, ck, steps, episode in pool.map(_episode, curve_jobs):
-            along.setdefault((label, steps), {}).setdefault(int(ck.split()[1]), []).append(episode)
+        for label, step, steps, episode in pool.map(_episode, curve_jobs):
+            along.setdefault((label, steps), {}).setdefault(step, []).append(episode)
         ref_jobs = [(args.env, kind, args.seed + i) for kind in bench.sim().REFERENCES for i in range(args.episodes)]
         for kind, episode in pool.map(_reference, ref_jobs):
             ref_eps.setdefault(kind, []).append(episode)
