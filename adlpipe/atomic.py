@@ -65,9 +65,10 @@ def check_outputs(*paths: Path | str) -> None:
             raise OSError(err, os.strerror(err), str(path))
 
 
-def write_all_atomic(texts: dict[Path, str]) -> None:
-    """A stage's outputs all or none: every file is written to its temp first; only when all are written do they
-    replace their targets (a folder in the way or a full disk leaves every old output as it was)."""
+def write_all_atomic(texts: dict[Path, str | bytes]) -> None:
+    """A stage's outputs (text, or bytes such as a PNG) all or none: every file is written to its temp first; only
+    when all are written do they replace their targets (a folder in the way or a full disk leaves every old output
+    as it was)."""
     check_outputs(*texts)
     done: list[tuple[Path, Path]] = []
     try:
@@ -77,7 +78,7 @@ def write_all_atomic(texts: dict[Path, str]) -> None:
             tmp = temp_name(path)
             done.append((tmp, path))
             try:
-                tmp.write_text(text)
+                tmp.write_bytes(text) if isinstance(text, bytes) else tmp.write_text(text)
             except OSError as exc:
                 raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
         for tmp, path in done:

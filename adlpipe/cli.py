@@ -16,6 +16,12 @@ class Parser(argparse.ArgumentParser):
     def __init__(self, prog: str, description: str | None = None) -> None:
         super().__init__(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
 
+    def add_force(self) -> None:
+        """--force: replace outputs a DVC pipeline owns (adlpipe.dvc_outputs refuses them otherwise)."""
+        self.add_argument("--force", action="store_true",
+                          help="replace outputs that a DVC pipeline (dvc.lock) owns; refused without it outside dvc "
+                          "repro")
+
     def error(self, message: str) -> NoReturn:
         print(f"{self.prog}: error: {' '.join(message.split())} (see --help)", file=sys.stderr)
         sys.exit(2)

@@ -33,8 +33,10 @@ from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
 from .dataset import schema
 from .dataset.loader import Normalizer, TrajectoryDataset
 from .dataset.splits import load_split
+from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 from .metrics import commitment, waypoint_errors
+from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import latency_ms, predict
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
@@ -155,6 +157,31 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
     return rows
 
 
+def blind_rows(data: Path, split: dict, image_px: int, k: int) -> dict:
+    """The blind baseline (adlpipe.policy.blind) scored as a model: each test episode's prediction is its task's
+    mean training trajectory, the same for every sample, so best-of-K equals the single error."""
+    test = split["test"]
+    with schema.open_dataset(data, test) as f:
+        eps = [f[schema.EPISODES][n] for n in test]
+        tasks = [str(g.attrs["task"]) for g in eps]
+        gt = torch.from_numpy(np.stack([np.concatenate([g["traj2d"][()], g["traj3d"][()]], 1) for g in eps]))
+    pred = torch.from_numpy(blind_predictions(task_means(data, split["train"]), tasks))
+    px, cm = waypoint_errors(pred, gt.float())
+    mm = [i for i, t in enumerate(tasks) if t in multimodal_tasks()]
+    row = {"model": BLIND, "method": "task_mean", "steps": 1, "epoch": 0, "default": True, "evaluations": 0,
+           "image_px": image_px, "input_px": 0, "px": float(px.mean()), "px_ci": list(mean_interval(px.tolist())),
+           "px224": float(px.mean()) * PAPER_IMAGE_PX / image_px, "cm": float(cm.mean()),
+           "cm_ci": list(mean_interval(cm.tolist())), "n": len(px),
+           "px_per_episode": [round(float(v), 4) for v in px], "cm_per_episode": [round(float(v), 4) for v in cm],
+           "px_multimodal": float(px[mm].mean()) if mm else None, "cm_multimodal": float(cm[mm].mean()) if mm else None,
+           f"best_of_{k}_px": float(px.mean()), f"best_of_{k}_cm": float(cm.mean()),
+           "commitment": None, "to_demonstrated": None, "commitment_per_task": {}, "ms": 0.0,
+           "per_task": {t: {"px": float(px[[i for i, x in enumerate(tasks) if x == t]].mean()),
+                            "cm": float(cm[[i for i, x in enumerate(tasks) if x == t]].mean()),
+                            "n": tasks.count(t)} for t in sorted(set(tasks))}}
+    return {"task_mean/1": row}
+
+
 def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
     """One row per model, checkpoint, sampler and step count."""
     any_row = next(r for ck in results.values() for rows in ck.values() for r in rows.values())
@@ -162,14 +189,19 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
              f"mean over {any_row['n']} test episodes with its 95 % bootstrap interval; px224: px x {PAPER_IMAGE_PX}/"
              f"{any_row['image_px']}, a rescaling to the paper's image size, not a measurement on {PAPER_IMAGE_PX} px "
              "images; cm likewise with its interval. best: the checkpoint with the lowest validation px; last: the "
-             "final one.", "",
+             f"final one. {BLIND}: the blind baseline, each test episode's task mean training trajectory (it ignores "
+             "the image): the floor a model's learning is measured against.", "",
              f"| method | checkpoint (epoch) | converged | sampler | steps | px [95 %] | px224 | cm [95 %] | ms | "
              f"best-of-{k} px | "
              "px (multimodal tasks) | mode commitment |",
              "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for model, by_ck in results.items():
         conv = {True: "yes", False: "**no**", None: "?"}[training.get(model, {}).get("converged")]
+        if model == BLIND:
+            conv = "- (not trained)"
         for ck, rows in by_ck.items():
+            if model == BLIND and ck == "last":
+                continue  # one set of task means: no checkpoints
             for r in rows.values():
                 mm = f"{r['px_multimodal']:.2f}" if r["px_multimodal"] is not None else "-"
                 com = f"{r['commitment']:.0%}" if r.get("commitment") is not None else "-"
@@ -191,6 +223,7 @@ def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -
         best = by_ck["best"]
         default = best.get(DEFAULTS.get(model, "")) or min(best.values(), key=lambda r: r["steps"])
         h = {"px": round(default["px"], 3), "px224": round(default["px224"], 3), "ms": round(default["ms"], 2),
+             "cm": round(default["cm"], 3),
              "converged": training.get(model, {}).get("converged"),
              "val_px_best": training.get(model, {}).get("val_px_best"),
              "commitment": None if default.get("commitment") is None else round(default["commitment"], 3)}
@@ -251,11 +284,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1),
                    help="processes rebuilding the two-mode scenes in the simulator (mode commitment)")
     add_device_args(p, compile_option=True)
+    p.add_force()
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     placement = Placement.from_args(args)
     check_outputs(args.metrics, args.details, args.plots, args.table)
+    refuse_pipeline_outputs([args.metrics, args.details, args.plots, args.table], args.force)
     split = load_split(args.split or args.data.with_name("split.json"))
     if not split["test"]:
         raise AdlError("the test split is empty: record more episodes per task")
@@ -283,6 +318,11 @@ def main(argv: list[str] | None = None) -> int:
         top = min(best.values(), key=lambda r: r["px"])
         print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
               f"{top['steps']} steps){'' if training[d.name].get('converged') else ', not converged'}")
+    try:
+        blind = blind_rows(args.data, split, image_px, args.best_of)
+        results[BLIND] = {"best": blind, "last": blind}
+    except AdlError as exc:  # a test task without training episodes: no floor to state
+        print(f"no blind baseline row: {exc}")
     title = "# Trajectory error and inference time on the test split\n\n"
     write_all_atomic({
         args.details: json_text({"n_test": len(split["test"]), "best_of": args.best_of, "training": training,

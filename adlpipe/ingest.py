@@ -51,6 +51,7 @@ from .camera import Lens, lens_from_info, project
 from .cli import Parser, int_range
 from .dataset import schema, shards
 from .dataset.frames import FrameWriter
+from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 from .geometry import matrix_to_quat, resample, scale_intrinsics
 from .lock import exclusive
@@ -331,6 +332,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    "folder of the dataset, leaving the index to --gather (one share per machine or task)")
     p.add_argument("--gather", action="store_true",
                    help="link every finished share (--shard) into the index; give no bags")
+    p.add_force()
     args = p.parse_args(argv)
     if not (args.list or args.suggest_config) and args.output is None:
         p.error("the following arguments are required: -o/--output")
@@ -464,6 +466,7 @@ def main(argv: list[str] | None = None) -> int:
             bad += sum(t.declared not in (None, t.read) for t in s.topics.values())
         return 1 if bad else 0
     check_outputs(args.output)
+    refuse_pipeline_outputs([args.output], args.force)
     if args.gather:
         with exclusive(args.output):
             g = shards.gather(args.output)

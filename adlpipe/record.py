@@ -29,6 +29,7 @@ from .bags import messages as M
 from .bags.topics import TopicMap
 from .bags.writer import FORMATS, BagWriter
 from .cli import NON_NEGATIVE, Parser, float_range, int_range
+from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 from .geometry import matrix_to_quat
 
@@ -168,6 +169,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--camera-hz", type=float_range(0.1, 120), default=15.0)
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument("--workers", type=int_range(1, 256), default=2)
+    p.add_force()
     args = p.parse_args(argv)
     bad = [t for t in args.tasks if t not in TASK_NAMES]
     if bad:
@@ -179,6 +181,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    refuse_pipeline_outputs([args.out], args.force)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.world in SEEDED_WORLDS:
         _seeded_world(args.world).make_env().close()  # the optional extra's absence is one line here, not per worker

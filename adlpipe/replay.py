@@ -10,7 +10,16 @@ held at the mouth, objects where they belong.
 Each test episode's scene is rebuilt from the initial object and manikin poses stored with it; the predicted 3D
 trajectory (32 waypoints, base frame) is executed open loop over the demonstration's duration by the same arm
 controller and grasp rule that recorded the demonstrations. `demo` (the recorded trajectory itself) is always
-scored too, as the reference. Works on bags recorded by adlpipe.record (their frames name the world's objects).
+scored too, as the reference, and `blind` (each task's mean training trajectory, adlpipe.policy.blind) as the floor.
+Works on bags recorded by adlpipe.record (their frames name the world's objects).
+
+Timing: by default every trajectory runs over its demonstration's own duration (--speed-profile demo), which no
+deployed policy knows; --speed-profile fixed runs it instead over its own path length at the task's median
+demonstrated speed (training split), a timing a deployed policy can have; both together are two rows per policy.
+
+Every replayed episode keeps which parts of the predicate failed and its peak force on the manikin; the table
+breaks failures down by part, safety first (adlpipe.outcomes), and --failures writes a PNG strip per policy of a
+few failed episodes.
 
 Closed loop (--closed-loop TA [TA ...], models trained with train --closed-loop): the camera renders at the
 recorded rate; from its last To frames and the end effector's position at each, the policy predicts the next Tp
@@ -45,7 +54,10 @@ from .dataset.loader import (
     relative_waypoints,
 )
 from .dataset.splits import load_split
+from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
+from .outcomes import breakdown_lines, failure_strip, pick_failures
+from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import predict
 from .runtime import Placement, add_device_args
@@ -56,9 +68,9 @@ def _replay_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     from .sim.episode import replay_trajectory, spec_from_objects
 
     label, name, task, names, objects, traj3d, duration = job
-    spec = spec_from_objects(task, names, objects)
-    ok, _ = replay_trajectory(spec, traj3d, duration)
-    return label, name, task, ok, {}
+    run = replay_trajectory(spec_from_objects(task, names, objects), traj3d, duration)
+    return label, name, task, run.success, {"failed": [k for k, ok in run.checks.items() if not ok],
+                                            "peak_force_n": round(float(run.peak_force_n), 2)}
 
 
 def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
@@ -99,7 +111,7 @@ def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     demo_len = float(np.linalg.norm(np.diff(ep.ee_pos, axis=0), axis=1).sum())
     demo_at_rate = np.stack([np.interp(np.arange(0, ep.duration_s, 1 / cfg.rate_hz), ep.ee_t, ep.ee_pos[:, d])
                              for d in range(3)], 1)
-    diag = {"failed": [k for k, ok in run.checks.items() if not ok],
+    diag = {"failed": [k for k, ok in run.checks.items() if not ok], "peak_force_n": round(float(run.peak_force_n), 2),
             "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - ep.ee_pos[-1])), 2),
             "path_ratio": round(float(np.linalg.norm(np.diff(run.tcp_path, axis=0), axis=1).sum()) / demo_len, 3),
             "still_s": round(longest_still(run.command_path, cfg.rate_hz), 2),
@@ -163,6 +175,24 @@ def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str
     return "\n".join(lines) + "\n"
 
 
+FIXED = "@fixed-speed"  # the label suffix of a trajectory run at the task's demonstrated speed
+
+
+def path_length(traj3d: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(traj3d, axis=0), axis=1).sum())
+
+
+def demonstrated_speeds(data: Path, train: list[str]) -> dict[str, float]:
+    """task -> the median over its training demonstrations of path length / duration (m/s): the one speed a
+    deployed policy may run every predicted path at, knowing the task but not this scene's demonstration."""
+    per: dict[str, list[float]] = defaultdict(list)
+    with schema.open_dataset(data, train) as f:
+        for name in train:
+            g = f[schema.EPISODES][name]
+            per[str(g.attrs["task"])].append(path_length(g["traj3d"][()]) / max(float(g.attrs["duration_s"]), 1e-6))
+    return {t: float(np.median(v)) for t, v in per.items()}
+
+
 def every_task_first(data: Path, names: list[str], n: int) -> list[str]:
     """n episodes taken round-robin over the tasks (in split order within a task): a subset that still covers
     every task evenly."""
@@ -205,7 +235,8 @@ def label_of(model_dir: Path, method: str, family: str, steps: int) -> str:
 
 def predict_all(model_dir: Path, checkpoint: str, data: Path, names: list[str], fm_steps: list[int],
                 dp_steps: list[int], seed: int, placement: Placement) -> dict[str, np.ndarray]:
-    """label -> predicted traj3d (E, N, 3) of a model for the named episodes, for each of its step counts."""
+    """label -> predicted (u, v, x, y, z) waypoints (E, N, 5) of a model for the named episodes, for each of its
+    step counts."""
     policy, ck = load_policy(model_dir / checkpoint, placement)
     norm = Normalizer(ck["stats"])
     with h5py.File(data, "r") as f:
@@ -214,7 +245,7 @@ def predict_all(model_dir: Path, checkpoint: str, data: Path, names: list[str], 
     out = {}
     for steps in steps_for(policy.family, fm_steps, dp_steps):
         pred = norm.unnormalize(predict(policy, obs, steps, None, placement.generator(seed), placement))
-        out[label_of(model_dir, policy.default_method, policy.family, steps)] = pred[..., 2:].numpy()
+        out[label_of(model_dir, policy.default_method, policy.family, steps)] = pred.numpy()
     return out
 
 
@@ -235,6 +266,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="replay at most this many test episodes, taken round-robin over the tasks")
     p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1))
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--speed-profile", nargs="+", choices=["demo", "fixed"], default=["demo"],
+                   help="open loop: run each trajectory over the demonstration's duration (demo), or over its own "
+                   "path length at the task's median demonstrated speed (fixed, a row labelled @fixed-speed)")
+    p.add_argument("--failures", type=Path, help="folder for a PNG strip per policy of up to --strip failed episodes")
+    p.add_argument("--strip", type=int_range(1, 20), default=5, help="failed episodes per strip (one per task first)")
     p.add_argument("--closed-loop", type=POSITIVE, metavar="TA", nargs="+",
                    help="closed loop, for models trained with train --closed-loop: execute TA of the predicted "
                    "waypoints, then re-plan from new camera frames; several TA values are a sweep (e.g. 4 8 16)")
@@ -247,12 +283,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--details", type=Path, default=Path("metrics/replay_details.json"), help="success per task")
     p.add_argument("--table", type=Path, default=Path("reports/table2.md"))
     add_device_args(p, compile_option=True)
+    p.add_force()
     args = p.parse_args(argv)
     placement = Placement.from_args(args)
     if min(args.fm_steps + args.dp_steps) < 1:
         raise AdlError("--fm-steps and --dp-steps must be >= 1")
     checkpoint = CHECKPOINTS[args.checkpoint]
     check_outputs(args.metrics, args.details, args.table)
+    refuse_pipeline_outputs([args.metrics, args.details, args.table, args.failures], args.force)
     split = load_split(args.split or args.data.with_name("split.json"))
     names = split["test"]
     if args.max_episodes and args.max_episodes < len(names):
@@ -294,12 +332,26 @@ def main(argv: list[str] | None = None) -> int:
                              for ep, rate in zip(eps, rates, strict=True)]
     else:
         worker = _replay_one
-        trajs = {"demo": np.stack([ep.traj3d for ep in eps])}
+        trajs = {"demo": np.stack([np.concatenate([ep.traj2d, ep.traj3d], 1) for ep in eps])}
+        try:
+            trajs[BLIND] = blind_predictions(task_means(args.data, split["train"]), [ep.task for ep in eps])
+        except AdlError as exc:  # a test task without training episodes: no floor to state
+            print(f"no blind baseline row: {exc}")
         for d in args.models:
             trajs.update(predict_all(d, checkpoint, args.data, names, args.fm_steps, args.dp_steps, args.seed,
                                      placement))
-        jobs = [(label, ep.name, ep.task, ep.object_names, ep.objects, traj[i], ep.duration_s)
-                for label, traj in trajs.items() for i, ep in enumerate(eps)]
+        speeds = demonstrated_speeds(args.data, split["train"]) if "fixed" in args.speed_profile else {}
+        jobs = []
+        for label, traj in trajs.items():
+            for i, ep in enumerate(eps):
+                if "demo" in args.speed_profile:
+                    jobs.append((label, ep.name, ep.task, ep.object_names, ep.objects, traj[i, :, 2:], ep.duration_s))
+                if "fixed" in args.speed_profile:
+                    if ep.task not in speeds:
+                        raise AdlError(f"--speed-profile fixed: no training episodes of task {ep.task!r}")
+                    duration = max(path_length(traj[i, :, 2:]) / speeds[ep.task], 1.0)
+                    jobs.append((label + FIXED, ep.name, ep.task, ep.object_names, ep.objects, traj[i, :, 2:],
+                                 duration))
     wins: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     per_episode: dict[str, dict[str, bool]] = defaultdict(dict)
     diagnostics: dict[str, dict[str, dict]] = defaultdict(dict)
@@ -329,8 +381,27 @@ def main(argv: list[str] | None = None) -> int:
     title = (f"# Success rate (%) of {mode} execution in MuJoCo, test split, {args.checkpoint} checkpoints\n\n"
              "Success: the task's predicate, with any contact force on the manikin above 20 N a failure. Overall: "
              "the rate with Wilson's 95 % interval over n scenes; per task: the rate alone (few scenes each).\n\n")
-    failures = failure_table(diagnostics, per_episode) if diagnostics else ""
-    write_all_atomic({
+    failures = failure_table(diagnostics, per_episode) if args.closed_loop else ""
+    outcome = breakdown_lines(diagnostics, per_episode)
+    if outcome:
+        failures = ("\n## How the policies fail, safety first\n\nPer policy: its failed episodes; those with a "
+                    "contact force on the person above 20 N (of all its episodes, Wilson's 95 % interval) and the "
+                    "peak force over all of them; the failures missing each other part of the predicate (an episode "
+                    "may miss several).\n\n" + "\n".join(outcome) + "\n" + failures)
+    strips: dict[Path, bytes] = {}
+    if args.failures is not None and not args.closed_loop:
+        by_name = {ep.name: (i, ep) for i, ep in enumerate(eps)}
+        tasks_of = {ep.name: ep.task for ep in eps}
+        for label, diags in diagnostics.items():
+            if label.endswith(FIXED):
+                continue  # the same trajectories as the label's own strip, timed differently
+            picked = pick_failures(diags, per_episode[label], tasks_of, args.strip)
+            if picked:
+                traj = trajs[label.removesuffix(FIXED)]
+                strips[args.failures / f"{label.replace('/', '_')}.png"] = failure_strip(label, [
+                    {"task": tasks_of[n], "rgb": by_name[n][1].rgb, "demo_px": by_name[n][1].traj2d,
+                     "pred_px": traj[by_name[n][0], :, :2], **diags[n]} for n in picked])
+    write_all_atomic({**strips,
         args.details: json_text({"episodes": len(eps), "checkpoint": args.checkpoint, "success": result,
                                  "tasks": {ep.name: ep.task for ep in eps}, "per_episode": per_episode,
                                  "diagnostics": diagnostics,

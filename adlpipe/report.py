@@ -5,7 +5,12 @@ An accuracy claim ("FM-1 within 10 % of DP-16", "FM better than BC") is decided 
 ran, paired: supported only when the 95 % bootstrap interval of the per-episode difference excludes zero the
 claimed way, contradicted when it excludes it the other way, otherwise not resolved at that n (with about how many
 episodes would resolve it at the observed effect); a model that did not converge makes it no finding at all.
-Success rates are compared by McNemar's exact test on the same scenes.
+Success rates are compared by McNemar's exact test on the same scenes. Every model is also measured against the
+blind baseline (its task's mean training trajectory: what knowing the task alone buys), and its failures are
+broken down by the part of the task's predicate that failed, the force on the person first (adlpipe.outcomes).
+
+--summary writes one small JSON per policy (px, cm, ms, open-loop success, converged) into a folder: the rows
+`dvc metrics show` prints, one line per policy.
 
     python -m adlpipe.report --eval metrics/eval_details.json --replay metrics/replay_details.json -o reports/report.md
 """
@@ -15,13 +20,19 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
-from .atomic import atomic_path, check_outputs, write_text_atomic
+from .atomic import atomic_path, check_outputs, json_text, write_all_atomic
 from .cli import Parser
+from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
+from .outcomes import breakdown_lines
+from .policy.blind import BLIND
 from .stats import interval_cell, paired_difference, paired_success, rate_cell
+
+FIXED = "@fixed-speed"  # replay's label suffix for a trajectory run at the task's demonstrated speed
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
 AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px
@@ -269,8 +280,8 @@ def _read_log(path: Path) -> dict[str, list[float]]:
 def headline_lines(ev: dict, rp: dict) -> list[str]:
     """One row per model, before the detail: its default sampler's error with intervals on the best checkpoint,
     its latency, whether it converged and its open-loop success (replay) when there is one."""
-    lines = ["| model | sampler | steps | px [95 %] | cm [95 %] | ms | converged | success (replay) |",
-             "| --- | --- | ---: | ---: | ---: | ---: | --- | ---: |"]
+    lines = ["| model | sampler | steps | px [95 %] | cm [95 %] | ms | converged | success (replay) [95 %] | "
+             "success at a fixed speed |", "| --- | --- | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
     success = rp.get("success", {})
     for model, by_ck in ev.get("models", {}).items():
         rows = list(by_ck.get("best", {}).values())
@@ -278,11 +289,82 @@ def headline_lines(ev: dict, rp: dict) -> list[str]:
         if r is None:
             continue
         conv = {True: "yes", False: "**no**", None: "?"}[ev.get("training", {}).get(model, {}).get("converged")]
-        ok = success.get(f"{model}/{r['method']}-{r['steps']}") or success.get(model)  # replay's labels
+        label = replay_label(model, r)
+        ok, fixed = success.get(label), success.get(label + FIXED)
         cells = [interval_cell(r[k], r[k + "_ci"], 2) if r.get(k + "_ci") else f"{r[k]:.2f}" for k in ("px", "cm")]
-        lines.append(f"| {model} | {r['method']} | {r['steps']} | {cells[0]} | {cells[1]} | {r['ms']:.1f} | {conv} | "
-                     f"{'-' if ok is None else rate_cell(round(ok['overall'] * ok['n']), ok['n'])} |")
+        lines.append(f"| {model} | {r['method']} | {r['steps']} | {cells[0]} | {cells[1]} | {r['ms']:.1f} | "
+                     f"{'- (not trained)' if model == BLIND else conv} | {_rate(ok)} | {_rate(fixed)} |")
     return lines
+
+
+def _rate(r: dict | None) -> str:
+    return "-" if r is None else f"{rate_cell(round(r['overall'] * r['n']), r['n'])} n={r['n']}"
+
+
+def replay_label(model: str, row: dict) -> str:
+    """Replay's label of an evaluated model row: <model>/<sampler>-<steps>, or the model alone for a regressor and
+    the blind baseline."""
+    return model if row["method"] in ("direct", "task_mean") else f"{model}/{row['method']}-{row['steps']}"
+
+
+def default_row(ev: dict, model: str) -> dict | None:
+    rows = list(ev.get("models", {}).get(model, {}).get("best", {}).values())
+    return next((x for x in rows if x.get("default")), None) or (min(rows, key=lambda x: x["steps"]) if rows else None)
+
+
+def blind_lines(ev: dict, rp: dict) -> list[str]:
+    """How far each model is above the blind baseline, paired on the same test episodes: the px difference (model -
+    blind, negative: the model is better) with its bootstrap interval, and the success difference by McNemar."""
+    blind = default_row(ev, BLIND)
+    if blind is None or not blind.get("px_per_episode"):
+        return []
+    per = rp.get("per_episode", {})
+    lines = ["| model | px - blind px [95 %] | verdict: better than blind | success vs blind |",
+             "| --- | ---: | --- | --- |"]
+    for model in ev.get("models", {}):
+        r = default_row(ev, model)
+        if model == BLIND or r is None or not r.get("px_per_episode"):
+            continue
+        d = paired_difference(r["px_per_episode"], blind["px_per_episode"])
+        a, b = per.get(replay_label(model, r), {}), per.get(BLIND, {})
+        both = sorted(set(a) & set(b))
+        vs = "-"
+        if both:
+            test = paired_success([a[n] for n in both], [b[n] for n in both])
+            sa, sb = sum(a[n] for n in both), sum(b[n] for n in both)
+            vs = f"{100 * sa / len(both):.0f} vs {100 * sb / len(both):.0f} % ({test})"
+        lines.append(f"| {model} | {d.mean:+.2f} [{d.low:+.2f}, {d.high:+.2f}] | {d.verdict()} | {vs} |")
+    return lines + ["", f"Blind: {blind['px']:.2f} px, {blind['cm']:.2f} cm over {blind['n']} test episodes; replay "
+                    f"{_rate(rp.get('success', {}).get(BLIND))}. A model that is not better than blind has learnt "
+                    "nothing from the image that the task name does not give."]
+
+
+def summary_files(ev: dict, rp: dict, cl: dict) -> dict[str, str]:
+    """policy -> the JSON `dvc metrics show` prints as one row: px, cm, ms, success (open loop; closed loop: the best
+    Ta's), converged."""
+    out, success = {}, rp.get("success", {})
+    if "demo" in success:
+        out["demo"] = json_text({"success": round(success["demo"]["overall"], 4)})
+    for model in ev.get("models", {}):
+        r = default_row(ev, model)
+        if r is None:
+            continue
+        ok = success.get(replay_label(model, r))
+        out[model] = json_text({"px": round(r["px"], 3), "cm": round(r["cm"], 3), "ms": round(r["ms"], 2),
+                                "success": None if ok is None else round(ok["overall"], 4),
+                                "converged": ev.get("training", {}).get(model, {}).get("converged")})
+    for label, r in cl.get("success", {}).items():
+        model = label.split("/")[0]
+        name = f"closed_loop_{model}"
+        if model.startswith("oracle") or (name in out and json_success(out[name]) >= r["overall"]):
+            continue
+        out[name] = json_text({"success": round(r["overall"], 4),
+                               "converged": cl.get("training", {}).get(model, {}).get("converged")})
+    return out
+
+
+def json_success(text: str) -> float:
+    return json.loads(text)["success"]
 
 
 def model_styles(models: list[str]) -> dict[str, dict]:
@@ -384,9 +466,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--table1", type=Path, default=Path("reports/table1.md"))
     p.add_argument("--table2", type=Path, default=Path("reports/table2.md"))
     p.add_argument("--table2-closed-loop", type=Path, default=Path("reports/table2_closed_loop.md"))
+    p.add_argument("--failures", type=Path, help="replay's folder of failure strips (PNG), linked from the report")
+    p.add_argument("--summary", type=Path, help="folder for one JSON per policy, the rows of `dvc metrics show`")
     p.add_argument("-o", "--output", type=Path, default=Path("reports/report.md"))
+    p.add_force()
     args = p.parse_args(argv)
     check_outputs(args.output)
+    refuse_pipeline_outputs([args.output, args.output.parent / "figures", args.summary], args.force)
     ev, rp = _load(args.eval), _load(args.replay)
     if "models" not in ev or "success" not in rp:
         raise AdlError(f"{args.eval} / {args.replay}: not evaluate/replay detail files (no 'models' / 'success')")
@@ -397,24 +483,39 @@ def main(argv: list[str] | None = None) -> int:
              f"Test episodes: {ev['n_test']} (error), {rp['episodes']} (replay, {rp.get('checkpoint', 'best')} "
              "checkpoints). Figures of the best validation checkpoints with each model's default sampler.", "",
              "## Headline: each model's default sampler, best checkpoint", "", *headline_lines(ev, rp), "",
-             "## The paper's claims on this data", "", *compared, "",
+             "Replay success: open loop over the demonstration's own duration (which no deployed policy knows); at a "
+             "fixed speed: the same trajectory over its own path length at the task's median demonstrated speed.",
+             "", "## The paper's claims on this data", "", *compared, "",
              "## Convergence (same optimiser steps for every model)", "", *convergence_lines(ev), "",
              "A model is converged when its best val px fell by at most 2 % over the last fifth of training; a claim "
              "involving a model that is not, or a generative U-Net model more than "
              f"{UNDERTRAINED_RATIO:.0f}x worse than BC-CNN (the same network trained by regression), is never stated "
              "as a finding.", "",
              "## Figures", "", *[f"![{f.stem}](figures/{f.name})" for f in figs], ""]
+    blind = blind_lines(ev, rp)
+    if blind:
+        parts += ["## Above the blind baseline (paired, best checkpoints, default samplers)", "", *blind, ""]
+    outcome = breakdown_lines(rp.get("diagnostics", {}), rp.get("per_episode", {}))
+    if outcome:
+        strips = sorted(args.failures.glob("*.png")) if args.failures is not None and args.failures.is_dir() else []
+        rel = [os.path.relpath(f, args.output.parent) for f in strips]
+        parts += ["## How the policies fail, safety first (open loop)", "", *outcome, "",
+                  "Force: episodes with a contact force on the person above 20 N, of all the policy's episodes; the "
+                  "other columns count its failed episodes missing that part of the task's predicate (an episode "
+                  "may miss several).", "", *[f"![{f.stem}]({r})" for f, r in zip(strips, rel, strict=True)], ""]
     modes = mode_lines(ev, rp)
     if modes:
         parts += ["## Mode commitment", "", *modes, ""]
-    if args.closed_loop is not None and args.closed_loop.exists():
-        parts += ["## Closed loop vs open loop (success %)", "", *closed_loop_lines(rp, _load(args.closed_loop)), ""]
+    cl = _load(args.closed_loop) if args.closed_loop is not None and args.closed_loop.exists() else {}
+    if cl:
+        parts += ["## Closed loop vs open loop (success %)", "", *closed_loop_lines(rp, cl), ""]
     if args.table1.exists():
         parts += ["## Table 1 in detail: every checkpoint, sampler and step count", "", args.table1.read_text(), ""]
     for t in (args.table2, args.table2_closed_loop):
         if t.exists():
             parts += [t.read_text().replace("# ", "## ", 1), ""]
-    write_text_atomic(args.output, "\n".join(parts))
+    summary = {args.summary / f"{k}.json": v for k, v in summary_files(ev, rp, cl).items()} if args.summary else {}
+    write_all_atomic({args.output: "\n".join(parts), **summary})
     print("\n".join(compared))
     return 0
 

@@ -12,6 +12,7 @@ from .atomic import check_outputs, write_json_atomic
 from .cli import NON_NEGATIVE, Parser, float_range
 from .dataset import schema
 from .dataset.splits import make_split
+from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 
 
@@ -21,11 +22,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-o", "--output", type=Path, help="split JSON (default: split.json beside the data)")
     p.add_argument("--test-fraction", type=float_range(0, 1, lo_open=True), default=0.2)
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_force()
     args = p.parse_args(argv)
     if not 0 < args.test_fraction < 1:
         raise AdlError("--test-fraction must be between 0 and 1")
     out = args.output or args.data.with_name("split.json")
     check_outputs(out)
+    refuse_pipeline_outputs([out], args.force)
     with schema.open_dataset(args.data) as f:
         tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in schema.episode_names(f)}
     if not tasks:

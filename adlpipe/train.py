@@ -63,6 +63,7 @@ from .dataset.loader import (
 from .dataset.memory_windows import MAX_BYTES, MemoryBatches, memory_bytes
 from .dataset.sampling import EpochSampler, TrainingSamples
 from .dataset.splits import load_split, make_split
+from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 from .lock import exclusive
 from .policy.checkpoint import load_checkpoint, save_atomic
@@ -409,6 +410,7 @@ def main(argv: list[str] | None = None) -> int:
                    "is: for bags without a command topic) or action (the bags' action stream per frame, absolute, "
                    "with their state stream as the state input: Push-T, joint-space policies)")
     add_device_args(p)
+    p.add_force()
     args = p.parse_args(argv)
     device = resolve_device(args.device)
     if args.threads:
@@ -417,6 +419,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.image_size:
         overrides["image_size"] = args.image_size
     out = args.out or Path("models") / args.model
+    refuse_pipeline_outputs([out, args.log], args.force)
     with schema.open_dataset(args.data, names=[]) as f:  # train() checks the split's episodes
         horizon = int(f.attrs["n_waypoints"])
     if args.closed_loop:

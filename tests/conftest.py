@@ -26,10 +26,12 @@ def public_bag(name: str) -> Path:
 SMALL = ["--size", "64", "--camera-hz", "5"]
 
 
-def run_module(module: str, *args: str, check: bool = False, timeout: float = 600) -> subprocess.CompletedProcess:
-    """Run `python -m adlpipe.<module>` as a user would; returns the completed process (text output)."""
+def run_module(module: str, *args: str, check: bool = False, timeout: float = 600,
+               cwd: Path = REPO) -> subprocess.CompletedProcess:
+    """Run `python -m adlpipe.<module>` as a user would (in `cwd`, the repository by default); returns the completed
+    process (text output)."""
     proc = subprocess.run([sys.executable, "-m", f"adlpipe.{module}", *map(str, args)], capture_output=True,
-                          text=True, timeout=timeout, cwd=REPO)
+                          text=True, timeout=timeout, cwd=cwd)
     if check and proc.returncode != 0:
         raise AssertionError(f"adlpipe.{module} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
     return proc

@@ -55,13 +55,14 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     split = json.loads((pipeline / "data" / "split.json").read_text())
     assert len(split["test"]) == 10 and len(split["train"]) == 10  # one test episode per task
     headline = json.loads((pipeline / "metrics" / "eval.json").read_text())
-    assert set(headline) == {*MODELS, "n_test"}
-    replay = json.loads((pipeline / "metrics" / "replay.json").read_text())
-    n_values = sum(len(v) if isinstance(v, dict) else 1 for d in (headline, replay) for v in d.values())
-    assert n_values <= 45, n_values  # dvc metrics show stays readable (43 with mode commitment per model)
+    assert set(headline) == {*MODELS, "blind", "n_test"}
     assert "px_16_steps" in headline["fm_cnn"] and "px_16_steps" not in headline["dp_cnn"]
     ev = json.loads((pipeline / "metrics" / "eval_details.json").read_text())
-    assert sorted(ev["models"]) == sorted(MODELS)
+    assert sorted(ev["models"]) == sorted([*MODELS, "blind"])
+    # the blind baseline: each test episode's task mean training trajectory, the same for every test episode of a
+    # task (one per task here), scored like a model
+    blind = ev["models"]["blind"]["best"]["task_mean/1"]
+    assert blind["n"] == 10 and blind["px"] > 0 and blind["px_ci"][0] <= blind["px"] <= blind["px_ci"][1]
     fm = ev["models"]["fm_cnn"]
     assert sorted(fm) == ["best", "last"]
     assert sorted(fm["best"]) == ["euler/1", "euler/16"] and fm["best"]["euler/16"]["evaluations"] == 16
@@ -85,7 +86,9 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     report = (pipeline / "reports" / "report.md").read_text()
     assert "## Success rate" in report
     headline_rows = report.split("## Headline")[1].split("\n## ")[0]  # one row per model, before the detail
-    assert headline_rows.count("\n| ") == len(MODELS) + 2 and "| fm_cnn | euler | 1 | " in headline_rows
+    assert headline_rows.count("\n| ") == len(MODELS) + 3 and "| fm_cnn | euler | 1 | " in headline_rows
+    assert "| blind | task_mean | 1 | " in headline_rows and "## Above the blind baseline" in report
+    assert "## How the policies fail, safety first" in report and "| blind | " in report
     assert report.index("## Headline") < report.index("## Table 1 in detail")
     assert "FM-1 about as accurate as DP-16 (within 10% or better; clean-trajectory output for both)" in report
     assert "FM-1 about as accurate as DP-16 (within 10% or better; the paper's pair: velocity vs noise" in report
@@ -112,6 +115,49 @@ def test_the_demonstrations_replay_successfully(pipeline: Path) -> None:
     demo = rp["success"]["demo"]
     assert demo["n"] == 10 and len(demo["per_task"]) == 10
     assert demo["overall"] >= 0.9, demo
+    # at the task's demonstrated speed (no demonstration's own duration), the demonstrations still succeed
+    assert rp["success"]["demo@fixed-speed"]["overall"] >= 0.8, rp["success"]["demo@fixed-speed"]
+    assert {"blind", "blind@fixed-speed", "fm_cnn/euler-1@fixed-speed"} <= set(rp["success"])
+    # every episode keeps which parts of its predicate failed and its peak force on the person
+    diag = rp["diagnostics"]["fm_cnn/euler-1"]
+    assert len(diag) == 10 and all(d["peak_force_n"] >= 0 for d in diag.values())
+    failed = [n for n, ok in rp["per_episode"]["fm_cnn/euler-1"].items() if not ok]
+    assert all(diag[n]["failed"] for n in failed) and not any(diag[n]["failed"] for n in diag if n not in failed)
+    strips = sorted((pipeline / "reports" / "failures").glob("*.png"))
+    assert strips and all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in strips)
+    assert (pipeline / "reports" / "failures" / "fm_cnn_euler-1.png").exists() == bool(failed)
+
+
+def test_dvc_commands_print_clean_in_120_columns(pipeline: Path) -> None:
+    """After the pipeline ran, dvc metrics show is one row per policy, no warning, and fits a 120-column terminal;
+    dvc status and dvc plots show warn of nothing."""
+    proc = dvc(pipeline, "metrics", "show")
+    lines = proc.stdout.splitlines()
+    assert "WARNING" not in proc.stderr + proc.stdout and "failed to load" not in proc.stderr + proc.stdout
+    assert max(len(line) for line in lines) <= 120, proc.stdout
+    rows = {line.split()[0] for line in lines[1:]}
+    assert {f"metrics/summary/{m}.json" for m in ("fm_cnn", "dp_cnn", "bc_cnn", "blind", "demo",
+                                                    "closed_loop_fm_cnn")} <= rows, proc.stdout
+    assert lines[0].split() == ["Path", "cm", "converged", "ms", "px", "success"]
+    status = dvc(pipeline, "status")
+    assert status.stdout.strip() == "Data and pipelines are up to date." and not status.stderr.strip()
+    plots = dvc(pipeline, "plots", "show", "--json")
+    assert "WARNING" not in plots.stderr, plots.stderr
+
+
+def test_a_stage_run_by_hand_refuses_to_replace_the_pipelines_outputs(pipeline: Path) -> None:
+    split = pipeline / "data" / "split.json"
+    before = split.read_bytes()
+    proc = run_module("split", "data/adl.h5", "-o", "data/split.json", "--seed", "1", cwd=pipeline)
+    line = one_line_error(proc)
+    assert "data/split.json" in line and "DVC stage 'split'" in line and "--force" in line
+    assert split.read_bytes() == before
+    # elsewhere it writes, and --force replaces the pipeline's own (the same seed: the same split)
+    run_module("split", "data/adl.h5", "-o", "elsewhere/split.json", cwd=pipeline, check=True)
+    assert (pipeline / "elsewhere" / "split.json").exists()
+    run_module("split", "data/adl.h5", "-o", "data/split.json", "--test-fraction", "0.2", "--force", cwd=pipeline,
+               check=True)
+    assert "Data and pipelines are up to date" in dvc(pipeline, "status").stdout
 
 
 def test_repro_reruns_only_what_changed(pipeline: Path) -> None:

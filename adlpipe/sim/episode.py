@@ -256,8 +256,18 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
     return st
 
 
-def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -> tuple[bool, np.ndarray]:
-    """Execute a tcp trajectory open loop in the scene rebuilt from `spec`; returns (success, tcp path)."""
+@dataclass
+class OpenLoopRun:
+    """What an open-loop replay did: success, each part of the predicate, the peak force on the manikin."""
+
+    success: bool
+    checks: dict[str, bool]  # each part of the task's predicate (force, touches, stroke, dwell, placed)
+    peak_force_n: float  # the largest contact normal force on the manikin at any step
+    tcp_path: np.ndarray  # (S, 3) measured tcp after every physics step
+
+
+def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -> OpenLoopRun:
+    """Execute a tcp trajectory open loop in the scene rebuilt from `spec`."""
     task = TASKS[spec.task]
     ctrl, scene = make_scene(spec, 64, 64)
     monitor = SuccessMonitor(task, scene)
@@ -270,7 +280,7 @@ def replay_trajectory(spec: SceneSpec, waypoints: np.ndarray, duration: float) -
     # The arm starts at home, as in the demonstrations, whose first waypoint is the home pose.
     fn = waypoint_path(np.asarray(waypoints, float), duration)
     execute_path(ctrl, fn, duration, on_step=on_step)
-    return monitor.success(), np.array(path)
+    return OpenLoopRun(monitor.success(), monitor.checks(), monitor.max_force, np.array(path))
 
 
 Frame = tuple[np.ndarray, np.ndarray, np.ndarray, float]  # rgb, depth (m), measured tcp, gripper joint
@@ -284,6 +294,7 @@ class ClosedLoopRun:
     plans: int
     checks: dict[str, bool]  # each part of the task's predicate (force, touches, stroke, dwell, placed)
     tcp_path: np.ndarray  # (S, 3) measured tcp after every physics step
+    peak_force_n: float  # the largest contact normal force on the manikin at any step
     command_path: np.ndarray  # (P, 3) every executed waypoint (the commands), in order
 
 
@@ -335,7 +346,7 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.
         release_and_settle(ctrl, last, on_step=lambda _t: monitor.step())
     finally:
         camera.close()
-    return ClosedLoopRun(monitor.success(), plans, monitor.checks(), np.array(tcp_path),
+    return ClosedLoopRun(monitor.success(), plans, monitor.checks(), np.array(tcp_path), monitor.max_force,
                          np.array(commands).reshape(-1, 3))
 
 

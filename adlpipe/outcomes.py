@@ -1,0 +1,78 @@
+"""How replayed policies fail, safety first: the breakdown of failures by the part of the task's predicate that
+failed, and a picture strip of failed episodes. Replay writes both; the report reads the breakdown back from
+replay's details.
+
+Each replayed episode keeps a diagnosis: {"failed": [parts of the predicate missed], "peak_force_n": the largest
+contact normal force on the manikin}. The parts (adlpipe.sim.tasks.SuccessMonitor.checks): force (above the 20 N
+limit on the person), touches (a grasp or contact target not reached, in order), stroke (too short), dwell (the
+tool not held at its goal long enough), placed (the object not where it belongs).
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from .stats import rate_cell
+
+PARTS = ("force", "touches", "stroke", "dwell", "placed")
+PART_NAMES = {"force": "force > 20 N on the person", "touches": "grasp / contact missed", "stroke": "stroke short",
+              "dwell": "dwell short", "placed": "not placed"}
+
+
+def breakdown_lines(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str, dict[str, bool]]) -> list[str]:
+    """A markdown table: per policy, its failures, how many exceeded the force limit on the person (with the rate's
+    interval) and the peak force over all its episodes, and how many failures missed each other part."""
+    head = " | ".join(PART_NAMES[p] for p in PARTS[1:])
+    lines = [f"| policy | failed | force > 20 N on the person [95 %] | peak force N | {head} |",
+             "| --- | ---: | ---: | ---: |" + " ---: |" * (len(PARTS) - 1)]
+    for label, diags in diagnostics.items():
+        if not diags or "peak_force_n" not in next(iter(diags.values())):
+            continue  # details written before the diagnosis was kept
+        n = len(diags)
+        failed = [d for name, d in diags.items() if not per_episode.get(label, {}).get(name, False)]
+        over = sum("force" in d["failed"] for d in diags.values())
+        peak = max(d["peak_force_n"] for d in diags.values())
+        counts = " | ".join(str(sum(p in d["failed"] for d in failed)) for p in PARTS[1:])
+        lines.append(f"| {label} | {len(failed)} of {n} | {over} ({rate_cell(over, n)} %) | {peak:.1f} | {counts} |")
+    return lines if len(lines) > 2 else []
+
+
+def failure_strip(label: str, shots: list[dict]) -> bytes:
+    """A PNG strip of failed episodes: the first camera frame with the demonstrated (green) and the predicted (red)
+    2D trajectory, titled with the task, the parts that failed and the peak force. shots: {"task", "rgb" (H, W, 3),
+    "demo_px" (N, 2), "pred_px" (N, 2), "failed", "peak_force_n"}."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(shots), figsize=(2.6 * len(shots), 3.1), squeeze=False)
+    for ax, s in zip(axes[0], shots, strict=True):
+        ax.imshow(s["rgb"])
+        ax.plot(*np.asarray(s["demo_px"]).T, "-", color="lime", lw=1.2, label="demonstration")
+        ax.plot(*np.asarray(s["pred_px"]).T, "-", color="red", lw=1.2, label="policy")
+        h, w = s["rgb"].shape[:2]
+        ax.set(xlim=(-0.5, w - 0.5), ylim=(h - 0.5, -0.5))  # the image's extent: a path leaving it is cut off
+        failed = "\n".join(PART_NAMES[p] for p in s["failed"])
+        ax.set_title(f"{s['task']}\n{failed}\npeak {s['peak_force_n']:.0f} N", fontsize=6, loc="left")
+        ax.set_axis_off()
+    axes[0][0].legend(fontsize=5, loc="lower left")
+    fig.suptitle(f"{label}: failed episodes (one per task)", fontsize=8, y=1.12)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def pick_failures(diags: dict[str, dict], ok: dict[str, bool], tasks: dict[str, str], n: int) -> list[str]:
+    """Up to n failed episodes, one per task first (in task order), unsafe ones (force) before the rest."""
+    failed = sorted((name for name in diags if not ok.get(name, False)),
+                    key=lambda name: ("force" not in diags[name]["failed"], tasks.get(name, ""), name))
+    picked, seen = [], set()
+    for name in failed:
+        if tasks.get(name) not in seen:
+            picked.append(name)
+            seen.add(tasks.get(name))
+    return (picked + [x for x in failed if x not in picked])[:n]
