@@ -45,6 +45,7 @@ from .bags.episode_reader import BagReadout, check_counts, read_bag
 from .bags.images import decode_depth, decode_image
 from .bags.reader import BagSource
 from .bags.segments import find_segments
+from .bags.splits import recording_parts, recordings, split_note
 from .bags.survey import list_lines, suggest_config, survey
 from .bags.topics import TopicMap
 from .camera import Lens, lens_from_info, project
@@ -60,9 +61,10 @@ MAX_COORD_M = 1000.0  # tf translations beyond this are corrupt data, not a robo
 
 
 def sha256_of(path: Path) -> str:
-    """Hash of a bag file, or of a rosbag2 folder's files (names and bytes, sorted)."""
+    """Hash of a bag file, of a ROS1 split recording's parts (their bytes in order), or of a rosbag2 folder's
+    files (names and bytes, sorted)."""
     h = hashlib.sha256()
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else recording_parts(path)
     for p in files:
         if path.is_dir():
             h.update(p.relative_to(path).as_posix().encode())
@@ -101,7 +103,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     (recovery losses, bridged tf gaps). With `frames`, every frame streams into it and is synced at the end."""
     src = BagSource(bag, recover=recover)
     r = read_bag(src, tm, window, frames)
-    notes = []
+    notes = [split_note(src.parts)] if len(src.parts) > 1 else []
     if recover and src.damaged:
         notes.append(recovery_note(src, r.read))
     else:
@@ -143,6 +145,9 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         gripper = r.joint_names.index(tm.gripper_joint) if tm.gripper_joint in r.joint_names[:n_joints] else None
         frames.finish(r.t_img, t_end, tm.sync_tolerance_s, ee_t, ee_p, joint_t, joint_pos, gripper,
                       f"{bag}: topic {tm.image}", r.series)
+        if frames.reordered:
+            notes.append(f"ordered {frames.reordered} frame(s) logged out of header-stamp order"
+                         + (f", dropped {frames.early} stamped before the first image" if frames.early else ""))
     ep = schema.Episode(
         task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=r.kind,
         duration_s=t_end, stamp0_ns=int(round(r.t_img * 1e9)), base_frame=tm.base_frame, camera_frame=camera_frame,
@@ -366,6 +371,7 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
     into its own file as it is read; the index is replaced only when every bag is in. Returns counts; raises
     AdlError (dataset untouched) on a bad bag. share (I, N): only that share of the bags, committed as a share
     folder for shards.gather, the index untouched."""
+    bags = recordings(bags)
     if share:
         bags = share_of(bags, share)
     known: set[str] = set()
@@ -376,6 +382,11 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
                 known = schema.episode_keys(f)
         except OSError as exc:
             raise AdlError(f"{output}: existing output is not a readable HDF5 file ({exc})") from exc
+        try:  # every episode it holds readable: an append never builds on a damaged dataset
+            with schema.open_dataset(output):
+                pass
+        except AdlError as exc:
+            raise AdlError(f"cannot append to a damaged dataset: {exc}") from None
     known_shas = {k.split("#")[0] for k in known}  # a bag whose sha is in the file is skipped whole
     output.parent.mkdir(parents=True, exist_ok=True)
     if not share:  # a share never cleans up: other shares write beside it, on other machines
@@ -444,7 +455,8 @@ def check_free_space(output: Path, bags: Iterable[Path]) -> None:
     need = 10 << 20
     for b in bags:
         try:
-            need += sum(p.stat().st_size for p in b.rglob("*") if p.is_file()) if b.is_dir() else b.stat().st_size
+            files = b.rglob("*") if b.is_dir() else recording_parts(b)
+            need += sum(p.stat().st_size for p in files if p.is_file())
         except OSError:
             continue  # the worker reports the bag
     free = shutil.disk_usage(output.parent).free
@@ -455,6 +467,7 @@ def check_free_space(output: Path, bags: Iterable[Path]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    args.bags = recordings(args.bags)  # a folder of ROS1 bags: its bags; a split recording's parts: one recording
     if args.suggest_config:
         print(suggest_config(survey(args.bags[0])), end="")
         return 0

@@ -55,6 +55,10 @@ class Layout:
     lens: tuple[str, tuple[float, ...]] | None = None  # CameraInfo distortion_model and d (None: zeros)
     top_down: bool = False  # the camera 0.7 m above the workspace looking down (it sees the whole path)
     root: str | None = None  # a common root (world, map, odom): robot base and camera both hang below it
+    encoding: str = "rgb8"  # the camera's sensor_msgs/Image encoding (bayer_*, yuv422, rgb16, mono16, ...)
+    smooth: bool = False  # smooth colour gradients instead of noise (what demosaicing and 4:2:2 chroma keep)
+    split_s: float | None = None  # ROS1 only: `rosbag record --split`, a new <name>_<k>.bag every split_s seconds
+    late_frames: dict[int, float] | None = None  # frame index -> frames it is logged late (its header stamp unchanged)
 
 
 def _moving(t: float) -> list[np.ndarray]:
@@ -113,8 +117,9 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
         events.append((tn, 2, cam["camera_info"], M.CAMERA_INFO,
                        lambda tn=tn: f.camera_info(tn, cam["frame"], K, width, height,
                                                    *((lay.lens[0], np.array(lay.lens[1])) if lay.lens else ()))))
-        events.append((tn, 3, cam["image"], M.IMAGE,  # made when written: a long bag is never all in memory
-                       lambda tn=tn, k=k: f.image(tn, cam["frame"], _noise(k, height, width), "rgb8")))
+        late = ns(t + (lay.late_frames or {}).get(k, 0.0) / lay.camera_hz)  # log time; the header keeps tn
+        events.append((late, 3, cam["image"], M.IMAGE,  # made when written: a long bag is never all in memory
+                       lambda tn=tn, k=k: f.image(tn, cam["frame"], *_camera_image(k, lay))))
         if lay.depth:
             d = np.full((height, width), 1.5, np.float32) + np.linspace(0, 1, width, dtype=np.float32)
             d[:4] = np.nan  # no return
@@ -142,6 +147,16 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
             events.append((tn, 5, robot["joints"], M.JOINT_STATE,
                            lambda tn=tn, q=q: f.joint_state(tn, names, q, np.zeros(7))))
     events.sort(key=lambda e: (e[0], e[1]))
+    if lay.split_s:  # the parts of one recording: each message in the part its log time falls in
+        w.abort()
+        stem = path.with_suffix("")
+        parts: list[BagWriter] = []
+        for tn, _, topic, msgtype, build in events:
+            k = int((tn - t0) / 1e9 // lay.split_s)
+            while len(parts) <= k:
+                parts.append(BagWriter(Path(f"{stem}_{len(parts)}.bag"), "bag"))
+            parts[k].write(topic, msgtype, tn, build())
+        return [p.close() for p in parts][0], np.array(ee_t), np.array(ee_p)
     try:
         for tn, _, topic, msgtype, build in events:
             w.write(topic, msgtype, tn, build())
@@ -153,6 +168,54 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
 
 def _noise(k: int, height: int, width: int) -> np.ndarray:
     return np.random.default_rng(k).integers(0, 255, (height, width, 3), dtype=np.uint8)
+
+
+def smooth_rgb(k: int, height: int, width: int) -> np.ndarray:
+    """Slow colour gradients that move with k: what a Bayer or 4:2:2 camera reproduces nearly exactly."""
+    y, x = np.mgrid[0:height, 0:width].astype(float)
+    r = 128 + 100 * np.sin(x / width * 3 + k / 5)
+    g = 128 + 100 * np.cos(y / height * 2 + k / 7)
+    b = 128 + 90 * np.sin((x + y) / (width + height) * 4)
+    return np.clip(np.stack([r, g, b], -1), 0, 255).astype(np.uint8)
+
+
+BAYER = {"bayer_rggb8": "RGGB", "bayer_bggr8": "BGGR", "bayer_gbrg8": "GBRG", "bayer_grbg8": "GRBG"}
+
+
+def encode_rgb(rgb: np.ndarray, encoding: str) -> np.ndarray:
+    """An RGB frame laid out as a camera driver publishes it in `encoding` (the message's data as an array)."""
+    import cv2
+
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    if encoding in ("rgb8", "8UC3"):
+        return rgb
+    if encoding in ("mono8", "8UC1"):
+        return grey
+    if encoding in ("rgb16", "bgr16", "mono16"):
+        v = {"rgb16": rgb, "bgr16": rgb[..., ::-1], "mono16": grey}[encoding].astype(np.uint16)
+        return (v << 8) | v  # the full 16-bit range, as a 16-bit sensor fills it
+    if encoding in BAYER:
+        out = np.zeros(rgb.shape[:2], np.uint8)
+        for i, c in enumerate(BAYER[encoding]):
+            out[i // 2::2, i % 2::2] = rgb[i // 2::2, i % 2::2, "RGB".index(c)]
+        return out
+    # 4:2:2 YUV from OpenCV's own BT.601 4:2:0 planes (the range its inverse expects), chroma rows repeated
+    h, w = grey.shape
+    yuv = cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV_I420).reshape(-1)
+    y, u, v = yuv[:h * w].reshape(h, w), yuv[h * w:h * w * 5 // 4], yuv[h * w * 5 // 4:]
+    u, v = (np.repeat(c.reshape(h // 2, w // 2), 2, axis=0) for c in (u, v))
+    out = np.zeros((h, w // 2, 4), np.uint8)
+    if encoding in ("yuv422", "uyvy"):
+        out[..., 0], out[..., 1], out[..., 2], out[..., 3] = u, y[:, 0::2], v, y[:, 1::2]
+    else:  # yuv422_yuy2, yuyv
+        out[..., 0], out[..., 1], out[..., 2], out[..., 3] = y[:, 0::2], u, y[:, 1::2], v
+    return out.reshape(h, w, 2)
+
+
+def _camera_image(k: int, lay: Layout) -> tuple[np.ndarray, str]:
+    width, height = lay.size
+    rgb = smooth_rgb(k, height, width) if lay.smooth else _noise(k, height, width)
+    return encode_rgb(rgb, lay.encoding), lay.encoding
 
 
 def _depth_event(f: M.MessageFactory, kind: str, cam: dict, tn: int, d: np.ndarray) -> tuple:

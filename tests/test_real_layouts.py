@@ -207,11 +207,18 @@ def test_presets_read_bags_with_their_drivers_names(tmp_path: Path, camera: str,
     assert ep.depth is not None
 
 
+BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"{c}: &{c} [{', '.join([f'*{p}'] * 9)}]\n" for p, c in zip("abcdefgh", "bcdefghi", strict=True))
+
+
 @pytest.mark.parametrize(("content", "needle"), [
     ("image: 5\n", "'image' must be a topic or frame name"),
     ("sync_tolerance_s: fast\n", "'sync_tolerance_s' must be a non-negative number"),
     ("image: null\n", "'image' cannot be null"),
     ("ee_frame: [a, b]\n", "'ee_frame' must be a topic or frame name"),
+    # a billion-laughs alias bomb: refused before it is expanded (it would take minutes and gigabytes)
+    (BOMB, "uses YAML aliases"),
+    ("image: " + "x" * (1 << 21) + "\n", "over 1 MB; not read"),
 ])
 def test_a_topic_map_with_wrong_types_is_one_line(tmp_path: Path, content: str, needle: str) -> None:
     cfg = tmp_path / "m.yaml"
@@ -351,3 +358,122 @@ def test_the_suggested_config_keeps_the_projects_affordance_map(mcap_bags: list[
     with h5py.File(tmp_path / "x.h5") as f:
         ep = schema.read_episode(f, schema.episode_names(f)[0])
     assert ep.has_affordance and ep.affordance.max() > 0.5
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "bag"])
+@pytest.mark.parametrize(("encoding", "tol"), [
+    ("rgb16", 0.0), ("bgr16", 0.0), ("8UC3", 0.0), ("bayer_rggb8", 4.0), ("bayer_bggr8", 4.0),
+    ("bayer_gbrg8", 4.0), ("bayer_grbg8", 4.0), ("yuv422", 4.0), ("uyvy", 4.0), ("yuv422_yuy2", 4.0),
+    ("yuyv", 4.0)])
+def test_image_encodings_real_cameras_publish(tmp_path: Path, fmt: str, encoding: str, tol: float) -> None:
+    """The same smooth frames published as rgb8 and as a raw camera encoding ingest to the same stored frames:
+    exactly for lossless layouts, within a few levels where demosaicing or 4:2:2 chroma lose detail (and never
+    with the colour channels swapped)."""
+    ref = Layout(fmt=fmt, smooth=True, size=(40, 30), depth=None, duration_s=1.0)
+    lay = Layout(fmt=fmt, smooth=True, size=(40, 30), depth=None, duration_s=1.0, encoding=encoding)
+    want = _ingest(write_layout_bag(tmp_path / f"ref.{fmt}", ref)[0], tmp_path / "ref", TopicMap(**topic_map(ref)))
+    got = _ingest(write_layout_bag(tmp_path / f"enc.{fmt}", lay)[0], tmp_path / "enc", TopicMap(**topic_map(lay)))
+    diff = np.abs(got.rgb.astype(int) - want.rgb.astype(int))
+    assert got.rgb.shape == want.rgb.shape and got.rgb.dtype == np.uint8
+    assert diff.mean() <= tol, (encoding, diff.mean())
+    assert all(np.corrcoef(got.rgb[..., c].ravel(), want.rgb[..., c].ravel())[0, 1] > 0.95 for c in range(3))
+
+
+@pytest.mark.parametrize("encoding", ["mono8", "8UC1", "mono16"])
+def test_grey_cameras_store_grey_rgb_frames(tmp_path: Path, encoding: str) -> None:
+    import cv2
+
+    ref = Layout(smooth=True, size=(40, 30), depth=None, duration_s=1.0)
+    lay = Layout(smooth=True, size=(40, 30), depth=None, duration_s=1.0, encoding=encoding)
+    want = _ingest(write_layout_bag(tmp_path / "ref.mcap", ref)[0], tmp_path / "ref", TopicMap(**topic_map(ref)))
+    got = _ingest(write_layout_bag(tmp_path / "g.mcap", lay)[0], tmp_path / "g", TopicMap(**topic_map(lay)))
+    assert got.rgb.shape == want.rgb.shape and (got.rgb[..., 0] == got.rgb[..., 2]).all()
+    grey = cv2.cvtColor(want.rgb, cv2.COLOR_RGB2GRAY)
+    assert np.abs(got.rgb[..., 0].astype(int) - grey).mean() <= 1.0
+
+
+def test_an_odd_width_yuv_frame_is_one_line(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from adlpipe.bags.images import decode_image
+
+    msg = SimpleNamespace(encoding="uyvy", height=2, width=3, step=6, is_bigendian=0, data=bytes(12))
+    with pytest.raises(AdlError, match="3x2 uyvy image cannot be converted"):
+        decode_image(msg, "x.mcap: topic /cam")
+
+
+def _frames(h5: Path) -> tuple[np.ndarray, np.ndarray, str]:
+    with h5py.File(h5) as f:
+        g = f[schema.EPISODES][schema.episode_names(f)[0]]
+        return g["frames/t"][()], g["frames/rgb"][()], str(g.attrs["note"])
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "bag"])
+def test_frames_logged_a_little_out_of_order_are_ordered_by_stamp(tmp_path: Path, fmt: str) -> None:
+    """Frames 5 and 12 logged 1.5 and 3.5 frames late (a two-thread driver, a bag merged by log time): stored in
+    header-stamp order, the same frames as the bag logged in order, with a note; 20 frames late is refused."""
+    kw = dict(fmt=fmt, size=(32, 24), depth=None, duration_s=2.0)
+    ok_bag = write_layout_bag(tmp_path / f"ok.{fmt}", Layout(**kw))[0]
+    late_bag = write_layout_bag(tmp_path / f"late.{fmt}", Layout(**kw, late_frames={5: 1.5, 12: 3.5}))[0]
+    for name, bag in (("ok", ok_bag), ("late", late_bag)):
+        ingest([bag], tmp_path / f"{name}.h5", TopicMap(**topic_map(Layout(**kw))), n_waypoints=32, size=32)
+    t_ok, rgb_ok, note_ok = _frames(tmp_path / "ok.h5")
+    t_late, rgb_late, note_late = _frames(tmp_path / "late.h5")
+    assert np.all(np.diff(t_late) > 0) and np.array_equal(t_late, t_ok) and np.array_equal(rgb_late, rgb_ok)
+    assert note_ok == "" and "ordered 2 frame(s) logged out of header-stamp order" in note_late
+    very = write_layout_bag(tmp_path / f"very.{fmt}", Layout(**kw, late_frames={3: 12.5}))[0]
+    with pytest.raises(AdlError, match="frames cannot be ordered"):
+        ingest([very], tmp_path / "very.h5", TopicMap(**topic_map(Layout(**kw))), n_waypoints=32, size=32)
+
+
+def test_a_ros1_split_recording_is_one_recording(tmp_path: Path) -> None:
+    """`rosbag record --split` cut a 3 s demonstration into rec_0.bag .. rec_2.bag (tf_static and the task only in
+    the first part): given as its files or its folder it ingests as the one unsplit recording would; --list says
+    so. Separately recorded, numbered demonstrations stay separate."""
+    kw = dict(fmt="bag", size=(32, 24), depth="16UC1", duration_s=3.0)
+    (tmp_path / "whole").mkdir()
+    (tmp_path / "split").mkdir()
+    whole = write_layout_bag(tmp_path / "whole" / "rec.bag", Layout(**kw))[0]
+    first = write_layout_bag(tmp_path / "split" / "rec.bag", Layout(**kw, split_s=1.2))[0]
+    parts = sorted((tmp_path / "split").glob("rec_*.bag"))
+    assert first.name == "rec_0.bag" and [p.name for p in parts] == ["rec_0.bag", "rec_1.bag", "rec_2.bag"]
+    tm = TopicMap(**topic_map(Layout(**kw)))
+    want = _ingest(whole, tmp_path / "w", tm)
+    c = ingest(parts, tmp_path / "s.h5", tm, n_waypoints=32, size=48)
+    assert c["new"] == 1 and "one split recording of 3 files (rec_0.bag .. rec_2.bag)" in c["notes"][0], c
+    with h5py.File(tmp_path / "s.h5") as f:
+        got = schema.read_episode(f, schema.episode_names(f)[0])
+        frames = f[schema.EPISODES][schema.episode_names(f)[0]]["frames/t"].shape[0]
+    assert np.allclose(got.traj3d, want.traj3d, atol=1e-6) and got.duration_s == pytest.approx(want.duration_s)
+    assert frames == 31  # every frame of the 3 s at 10 Hz, across both part boundaries
+    # the folder: the same recording (already present, by its key)
+    proc = run_module("ingest", tmp_path / "split", "-o", tmp_path / "s.h5", "--size", "48", "--config",
+                      _write_map(tmp_path, tm))
+    assert proc.returncode == 0 and "0 episode(s) added, 1 already present" in proc.stdout, proc.stderr
+    listed = run_module("ingest", "--list", *parts, check=True).stdout
+    assert listed.count("one split recording of 3 files") == 1
+    # numbered demonstrations recorded one after another (not seamless): two recordings
+    (tmp_path / "demos").mkdir()
+    for k in range(2):
+        write_layout_bag(tmp_path / "demos" / f"demo_{k}.bag", Layout(**{**kw, "duration_s": 3.0 - k}))
+    assert ingest(sorted((tmp_path / "demos").glob("*.bag")), tmp_path / "d.h5", tm, n_waypoints=32,
+                  size=48)["new"] == 2
+
+
+def _write_map(tmp_path: Path, tm: TopicMap) -> Path:
+    cfg = tmp_path / "map.yaml"
+    cfg.write_text(yaml.safe_dump(topic_map(Layout(fmt="bag", depth="16UC1"))))
+    return cfg
+
+
+
+def test_depth_beyond_range_is_stored_as_no_return() -> None:
+    """REP 117: +inf is too far, -inf too near; the dataset promises NaN for every missing return."""
+    from types import SimpleNamespace
+
+    from adlpipe.bags.images import decode_depth
+
+    d = np.array([[1.5, np.inf], [-np.inf, 0.0]], np.float32)
+    msg = SimpleNamespace(encoding="32FC1", height=2, width=2, step=8, is_bigendian=0, data=d.tobytes())
+    out = decode_depth(msg, "x.mcap: topic /depth")
+    assert out[0, 0] == pytest.approx(1.5) and np.isnan(out[0, 1]) and np.isnan(out[1, 0]) and np.isnan(out[1, 1])

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import AdlError
 from ..geometry import TfBuffer, pose_matrix
-from .images import DEPTH_TYPES, decode_depth, decode_image
+from .images import DEPTH_TYPES, as_rgb8, decode_depth, decode_image
 from .reader import BagSource, TopicInfo
 from .topics import TopicMap
 
@@ -211,7 +211,7 @@ class _Streams:
         if topic == tm.image:
             if self.image is None or self.sink:
                 msg = decode()
-                image, t = decode_image(msg, self.where(topic)), stamp_s(msg)
+                image, t = as_rgb8(decode_image(msg, self.where(topic)), self.where(topic)), stamp_s(msg)
                 if self.image is None:
                     self.image, self.t_img = image, t
                     self.camera_frame = check_name(str(msg.header.frame_id), "frame", self.where(topic))
@@ -219,7 +219,7 @@ class _Streams:
                     raise AdlError(f"{self.where(topic)}: image size changes from {self.image.shape[1]}x"
                                    f"{self.image.shape[0]} to {image.shape[1]}x{image.shape[0]} within the bag")
                 if self.sink:
-                    self.sink.rgb(t, image)
+                    self.sink.rgb(t, image, self.where(topic))
         elif topic == tm.camera_info:
             if self.info is None:
                 self.info = decode()

@@ -14,11 +14,24 @@ from ..errors import AdlError
 
 MAX_PIXELS = 8192 * 8192  # larger claims are rejected, never allocated
 
-# encoding -> (numpy dtype, channels)
+# encoding -> (numpy dtype, channels as stored in the message)
 ENCODINGS = {
     "rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "rgba8": (np.uint8, 4), "bgra8": (np.uint8, 4),
+    "rgb16": (np.uint16, 3), "bgr16": (np.uint16, 3),
     "mono8": (np.uint8, 1), "8UC1": (np.uint8, 1), "8UC3": (np.uint8, 3), "mono16": (np.uint16, 1),
     "16UC1": (np.uint16, 1), "32FC1": (np.float32, 1),
+    "bayer_rggb8": (np.uint8, 1), "bayer_bggr8": (np.uint8, 1), "bayer_gbrg8": (np.uint8, 1),
+    "bayer_grbg8": (np.uint8, 1),
+    "yuv422": (np.uint8, 2), "uyvy": (np.uint8, 2), "yuv422_yuy2": (np.uint8, 2), "yuyv": (np.uint8, 2),
+}
+# Encodings only a colour camera publishes, converted to RGB when decoded, as cv_bridge does: raw Bayer mosaics
+# demosaiced (OpenCV names a pattern by its second row: ROS's RGGB is OpenCV's BG), 4:2:2 YUV (ROS's yuv422 is
+# UYVY byte order, yuv422_yuy2 YUYV) converted with BT.601.
+TO_RGB = {
+    "bayer_rggb8": cv2.COLOR_BayerBG2RGB, "bayer_bggr8": cv2.COLOR_BayerRG2RGB,
+    "bayer_gbrg8": cv2.COLOR_BayerGR2RGB, "bayer_grbg8": cv2.COLOR_BayerGB2RGB,
+    "yuv422": cv2.COLOR_YUV2RGB_UYVY, "uyvy": cv2.COLOR_YUV2RGB_UYVY,
+    "yuv422_yuy2": cv2.COLOR_YUV2RGB_YUY2, "yuyv": cv2.COLOR_YUV2RGB_YUY2,
 }
 
 
@@ -45,7 +58,12 @@ def decode_raw(msg: object, where: str) -> np.ndarray:
     buf = np.frombuffer(data, np.uint8, count=h * step).reshape(h, step)[:, :row]
     arr = np.ascontiguousarray(buf).view(np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<"))
     arr = arr.astype(dtype, copy=False).reshape(h, w, ch) if ch > 1 else arr.astype(dtype, copy=False).reshape(h, w)
-    if enc.startswith("bgr"):
+    if enc in TO_RGB:
+        if enc.startswith("bayer") and (h < 2 or w < 2) or not enc.startswith("bayer") and w % 2:
+            raise AdlError(f"{where}: a {w}x{h} {enc} image cannot be converted (Bayer needs 2x2, 4:2:2 an even "
+                           "width)")
+        arr = cv2.cvtColor(np.ascontiguousarray(arr), TO_RGB[enc])
+    elif enc.startswith("bgr"):
         arr = arr[..., [2, 1, 0]]
     elif enc == "rgba8":
         arr = arr[..., :3]
@@ -116,6 +134,18 @@ def decode_compressed(msg: object, where: str) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+def as_rgb8(image: np.ndarray, where: str) -> np.ndarray:
+    """A camera image as H x W x 3 uint8 RGB: 16-bit colour or grey scaled to 8 bits (the top byte, as cv_bridge
+    converts 16 to 8 bits), grey repeated into three channels; a float image is not a colour image."""
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    if image.dtype != np.uint8:
+        raise AdlError(f"{where}: a {image.dtype} image is not a colour camera image (an rgb8-like encoding is)")
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    return image
+
+
 def decode_image(msg: object, where: str) -> np.ndarray:
     if hasattr(msg, "encoding"):
         return decode_raw(msg, where)
@@ -125,11 +155,12 @@ def decode_image(msg: object, where: str) -> np.ndarray:
 
 
 def depth_to_metres(arr: np.ndarray, where: str) -> np.ndarray:
-    """16UC1 depth is millimetres (REP 118), 32FC1 metres; 0 means no return and becomes NaN."""
+    """16UC1 depth is millimetres (REP 118), 32FC1 metres; 0 means no return and becomes NaN, as do the +inf
+    (too far) and -inf (too near) REP 117 uses: the dataset promises NaN for every missing return."""
     if arr.ndim != 2:
         raise AdlError(f"{where}: depth image must be single channel, got shape {arr.shape}")
     d = arr.astype(np.float32) / 1000.0 if arr.dtype == np.uint16 else arr.astype(np.float32)
-    d[d <= 0] = np.nan
+    d[~np.isfinite(d) | (d <= 0)] = np.nan
     return d
 
 

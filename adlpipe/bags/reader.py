@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..errors import AdlError
 from .messages import typestore
+from .splits import recording_parts
 
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 COUNTS_METADATA = "adlpipe.message_counts"  # MCAP metadata record: topic -> message count, written first
@@ -54,6 +55,8 @@ class BagSource:
     def __init__(self, path: str | Path, recover: bool = False) -> None:
         self.path = Path(path)
         self.kind = bag_kind(self.path)
+        # a ROS1 split recording (name_0.bag, name_1.bag, ...) is read as one, its parts merged in time order
+        self.parts = recording_parts(self.path) if self.kind == "ros1" else [self.path]
         self.recover = recover
         self.lost_note = ""
         self._topics: dict[str, TopicInfo] | None = None
@@ -112,9 +115,9 @@ class BagSource:
     def _any_reader(self):  # noqa: ANN202 - rosbags AnyReader
         from rosbags.highlevel import AnyReader
 
-        path = self.path.parent if self.path.suffix == ".db3" else self.path
+        paths = [self.path.parent] if self.path.suffix == ".db3" else self.parts
         store = typestore(1 if self.kind == "ros1" else 2)
-        return AnyReader([path], default_typestore=store)
+        return AnyReader(paths, default_typestore=store)
 
     # -- messages --------------------------------------------------------------------------------------------
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Callable[[], object]]]:

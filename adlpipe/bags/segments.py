@@ -16,9 +16,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from ..errors import AdlError
+from ..errors import AdlError, read_small_yaml
 from ..geometry import TfBuffer, pose_matrix
 from .episode_reader import stamp_s
 from .reader import BagSource
@@ -53,10 +52,10 @@ def _first_log_ns(src: BagSource) -> int:
 
 
 def _from_sidecar(src: BagSource, path: Path) -> list[Window]:
+    raw = read_small_yaml(path, "segments file") or {}
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
         pairs = [(float(a), float(b)) for a, b in raw["segments"]]
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError) as exc:
         raise AdlError(f"{path}: not a segments file (want `segments: [[t0, t1], ...]` in seconds from the bag's "
                        f"first message; {type(exc).__name__})") from None
     if not pairs or any(not (0 <= a < b) for a, b in pairs):

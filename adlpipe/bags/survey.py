@@ -10,6 +10,7 @@ from pathlib import Path
 
 from .episode_reader import stamp_s
 from .reader import BagSource
+from .splits import split_note
 
 COLOR_ENCODINGS = {"rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8uc3", "8uc1"}
 DEPTH_ENCODINGS = {"16uc1", "32fc1", "mono16"}
@@ -48,6 +49,7 @@ class Survey:
     parent: dict[str, str]  # tf child -> parent
     moving: set[str]  # frames with changing transforms on a non-static tf topic
     static: set[str]
+    parts: list[Path] = field(default_factory=list)  # a ROS1 split recording's files, read as one
 
 
 def survey(bag: Path) -> Survey:
@@ -83,7 +85,7 @@ def survey(bag: Path) -> Survey:
             if child in first_tf and first_tf[child] != key:
                 moving.add(child)
             first_tf.setdefault(child, key)
-    return Survey(bag, stats, parent, moving, static)
+    return Survey(bag, stats, parent, moving, static, src.parts)
 
 
 def _image_kind(msg: object) -> str:
@@ -98,7 +100,8 @@ def _image_kind(msg: object) -> str:
 
 def list_lines(s: Survey) -> list[str]:
     """What `ingest --list` prints for one bag."""
-    out = [f"{s.bag}:", f"  {'topic':40s} {'type':34s} {'message counts':>27} {'rate Hz':>8} {'max gap s':>9} "
+    head = f"{s.bag}:" if len(s.parts) < 2 else f"{s.bag}: {split_note(s.parts)}:"
+    out = [head, f"  {'topic':40s} {'type':34s} {'message counts':>27} {'rate Hz':>8} {'max gap s':>9} "
            f"{'stamp offset s':>14}"]
     for topic, t in sorted(s.topics.items()):
         flag = "" if t.declared in (None, t.read) else "   <-- count mismatch"

@@ -6,9 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-import yaml
-
-from ..errors import AdlError
+from ..errors import AdlError, read_small_yaml
 
 
 @dataclass(frozen=True)
@@ -53,10 +51,7 @@ class TopicMap:
 
     @classmethod
     def _read(cls, path: str | Path) -> dict:
-        try:
-            raw = yaml.safe_load(Path(path).read_text()) or {}
-        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-            raise AdlError(f"{path}: cannot read topic map: {' '.join(str(exc).split())}") from exc
+        raw = read_small_yaml(Path(path), "topic map") or {}
         if not isinstance(raw, dict):
             raise AdlError(f"{path}: topic map must be a mapping of keys to topics")
         known = {f.name for f in fields(cls)}

@@ -21,6 +21,8 @@ A bag's frames are never all in memory: each is resized and appended to its data
 
 from __future__ import annotations
 
+import heapq
+
 import cv2
 import h5py
 import numpy as np
@@ -32,6 +34,10 @@ FRAMES = "frames"
 # ~15,000 random frame reads/s in one process.
 CODEC = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
 DEPTH_MM_MAX = 65535
+# A camera driver with two threads, or a bag merged by log time, logs a frame a little after a later one. Frames are
+# ordered by header stamp within this many frames of look-ahead (held resized, so memory stays flat); a frame
+# later than that cannot be ordered and the bag is refused.
+REORDER_FRAMES = 8
 
 
 class FrameWriter:
@@ -41,6 +47,11 @@ class FrameWriter:
         self.g = group.require_group(FRAMES)
         self.size = size
         self.t: dict[str, list[float]] = {"rgb": [], "depth": [], "affordance": []}  # stamps of what is written
+        self._pending: list[tuple[float, int, np.ndarray]] = []  # (stamp, arrival, resized rgb): the look-ahead
+        self._arrived = 0
+        self._latest = -np.inf
+        self.reordered = 0  # frames logged after a frame with a later stamp
+        self.early = 0  # frames stamped before the episode's first image (dropped by finish)
 
     def _append(self, key: str, t: float, arr: np.ndarray) -> None:
         if key not in self.g:
@@ -52,9 +63,28 @@ class FrameWriter:
         d[i] = arr
         self.t[key].append(t)
 
-    def rgb(self, t: float, image: np.ndarray) -> None:
+    def rgb(self, t: float, image: np.ndarray, where: str = "image") -> None:
+        """Take a frame in log order; it is written in header-stamp order once REORDER_FRAMES later frames came."""
         img = image if image.ndim == 3 else np.repeat(image[..., None], 3, 2)
-        self._append("rgb", t, cv2.resize(img, (self.size, self.size), interpolation=cv2.INTER_AREA).astype(np.uint8))
+        small = cv2.resize(img, (self.size, self.size), interpolation=cv2.INTER_AREA).astype(np.uint8)
+        self.reordered += t < self._latest
+        self._latest = max(self._latest, t)
+        heapq.heappush(self._pending, (t, self._arrived, small))
+        self._arrived += 1
+        if len(self._pending) > REORDER_FRAMES:
+            self._write_oldest(where)
+
+    def _write_oldest(self, where: str) -> None:
+        t, _, small = heapq.heappop(self._pending)
+        if self.t["rgb"] and t < self.t["rgb"][-1]:
+            raise AdlError(f"{where}: a frame's header stamp is {self.t['rgb'][-1] - t:.3f} s before one logged more "
+                           f"than {REORDER_FRAMES} frames earlier; frames cannot be ordered")
+        self._append("rgb", t, small)
+
+    def flush(self, where: str) -> None:
+        """Write the frames still held in the look-ahead (the end of the bag)."""
+        while self._pending:
+            self._write_oldest(where)
 
     def depth(self, t: float, metres: np.ndarray) -> None:
         d = cv2.resize(metres.astype(np.float32), (self.size, self.size), interpolation=cv2.INTER_NEAREST)
@@ -71,12 +101,18 @@ class FrameWriter:
         """Make stamps relative to the first image (t0, absolute s), drop frames after the path's end, and sync the
         end effector, joints, state and action (series: name -> Series), depth and affordance to each kept frame.
         Returns the number of frames."""
+        self.flush(where)
         t = np.asarray(self.t["rgb"], float) - t0
-        if np.any(np.diff(t) < 0):
-            raise AdlError(f"{where}: image header stamps go backwards; frames cannot be ordered")
+        # a frame stamped before the episode's first image (logged after it) precedes the episode: not kept
+        first = int(np.searchsorted(t, 0.0, side="left"))
         keep = int(np.searchsorted(t, t_end + tolerance, side="right"))
-        self.g["rgb"].resize(keep, axis=0)
-        t = t[:keep]
+        rgb = self.g["rgb"]
+        for i in range(keep - first if first else 0):  # one frame at a time: memory flat
+            rgb[i] = rgb[i + first]
+        self.g["rgb"].resize(keep - first, axis=0)
+        t = t[first:keep]
+        keep -= first
+        self.early = first
         self.g.create_dataset("t", data=t)
         self.g.create_dataset("ee_pos", data=np.stack([np.interp(t, ee_t, ee_pos[:, k]) for k in range(3)], 1)
                               .astype(np.float32))
