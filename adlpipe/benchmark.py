@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from .atomic import atomic_path, check_outputs, json_text, write_all_atomic
-from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
+from .cli import SEED, Parser, int_range
 from .dataset.loader import Normalizer, normalize_state, observation_from_arrays
 from .errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS, load_policy
@@ -279,8 +279,8 @@ def main(argv: list[str] | None = None) -> int:
                    "ddim_trailing: deterministic, starting from the last timestep, the fair few-step choice)")
     p.add_argument("--checkpoints", nargs="+", choices=sorted(CHECKPOINTS), default=["best", "last"],
                    help="which of each model's checkpoints to run (default: both)")
-    p.add_argument("--episodes", type=POSITIVE, default=50, help="initial conditions (the seed: 500)")
-    p.add_argument("--seed", type=NON_NEGATIVE, default=FIRST_SEED, help="the first initial condition")
+    p.add_argument("--episodes", type=int_range(1, 100_000), default=50, help="initial conditions (the seed: 500)")
+    p.add_argument("--seed", type=SEED, default=FIRST_SEED, help="the first initial condition")
     p.add_argument("--execute", type=int_range(1, 256), default=8, help="Ta: actions executed per plan")
     p.add_argument("--workers", type=int_range(1, 256), default=2)
     p.add_argument("--curve", action="store_true",
@@ -288,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
                    "--curve-episodes initial conditions: the learning curves, and the seed's max and last-3 columns")
     p.add_argument("--curve-steps", type=int_range(1, 100), default=16,
                    help="sampling steps along the curve (default 16; BC: its one prediction)")
-    p.add_argument("--curve-episodes", type=POSITIVE, help="initial conditions per checkpoint (default: --episodes)")
+    p.add_argument("--curve-episodes", type=int_range(1, 100_000),
+                   help="initial conditions per checkpoint (default: --episodes)")
     p.add_argument("--metrics", type=Path, help="default: metrics/<env>.json")
     p.add_argument("--details", type=Path, help="default: metrics/<env>_details.json")
     p.add_argument("--table", type=Path, help="default: reports/<env>.md")
@@ -302,6 +303,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not args.models:
         p.error("--models is required (or --compare DETAILS)")
+    if args.seed + max(args.episodes, args.curve_episodes or 0) - 1 > 2**32 - 1:
+        p.error(f"--seed {args.seed} with {max(args.episodes, args.curve_episodes or 0)} initial conditions runs "
+                "past the largest seed 2**32 - 1")
     bench = BENCHMARKS[args.env]
     metrics = args.metrics or Path(f"metrics/{args.env}.json")
     details = args.details or Path(f"metrics/{args.env}_details.json")

@@ -57,3 +57,4 @@ def float_range(lo: float | None = None, hi: float | None = None, lo_open: bool 
 
 POSITIVE = int_range(1)
 NON_NEGATIVE = int_range(0)
+SEED = int_range(0, 2**32 - 1)  # what every generator it reaches accepts (numpy, torch, the gym environments)

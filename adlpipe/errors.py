@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import errno
+import json
 import signal
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 
 class AdlError(Exception):
@@ -13,6 +15,36 @@ class AdlError(Exception):
 
     Its message is printed as one line; no traceback is shown.
     """
+
+
+def read_json_object(path: Path, what: str, key: str | None = None) -> dict:
+    """A JSON object from `path` (holding `key`, if given), or one line naming the file and what is wrong."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise AdlError(f"{path}: cannot read {what} ({exc})") from exc
+    if not isinstance(data, dict) or (key is not None and key not in data):
+        raise AdlError(f"{path}: not {what} (expected a JSON object{f' with {key!r}' if key else ''})")
+    return data
+
+
+MAX_YAML_BYTES = 1 << 20  # a topic map or segments file is a few lines; a larger one is not read
+
+
+def read_small_yaml(path: Path, what: str) -> object:
+    """A small YAML file a user wrote (a topic map, a segments sidecar), parsed safely: over MAX_YAML_BYTES or
+    using aliases (a billion-laughs bomb expands them exponentially) it is refused before anything is built."""
+    import yaml
+
+    try:
+        if path.stat().st_size > MAX_YAML_BYTES:
+            raise AdlError(f"{path}: {what} is over {MAX_YAML_BYTES >> 20} MB; not read")
+        text = path.read_text()
+        if any(isinstance(e, yaml.AliasEvent) for e in yaml.parse(text)):
+            raise AdlError(f"{path}: {what} uses YAML aliases (*name); write each value out")
+        return yaml.safe_load(text)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise AdlError(f"{path}: cannot read {what}: {' '.join(str(exc).split())[:200]}") from None
 
 
 def os_error_message(exc: OSError) -> str:

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
+from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, int_range
 from .dataset import schema
 from .dataset.loader import Normalizer, TrajectoryDataset
 from .dataset.splits import load_split
@@ -111,6 +111,8 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
     if cfg.closed_loop:
         raise AdlError(f"{model_dir}: a closed-loop model; evaluate measures first-frame ones (closed loop: "
                        "python -m adlpipe.replay --closed-loop, or python -m adlpipe.benchmark for Push-T)")
+    with schema.open_dataset(data, names=[]) as f:
+        schema.check_horizon(model_dir, cfg.horizon, f, data)
     ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth)
     norm = Normalizer(ck["stats"])
     obs = torch.stack([ds[i][0] for i in range(len(ds))])
@@ -269,12 +271,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
     p.add_argument("--split", type=Path, help="split JSON (default: split.json beside the data)")
     p.add_argument("--steps", nargs="+", type=int_range(1, 100), default=STEPS)
-    p.add_argument("--fm-methods", nargs="+", default=["euler"], help="euler, midpoint, rk4")
+    p.add_argument("--fm-methods", nargs="+", default=["euler"], choices=["euler", "midpoint", "rk4"],
+                   help="euler, midpoint, rk4")
     p.add_argument("--dp-methods", nargs="+", default=["ddpm", "ddim", "ddpm_trailing"],
+                   choices=["ddpm", "ddim", "ddpm_trailing", "ddim_trailing"],
                    help="ddpm, ddim (leading spacing, as Diffusion Policy), ddpm_trailing, ddim_trailing")
     p.add_argument("--best-of", type=POSITIVE, default=8, help="K samples for the best-of-K error")
     p.add_argument("--repeats", type=POSITIVE, default=20, help="timed runs per latency figure (median)")
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--threads", type=NON_NEGATIVE, default=0)
     p.add_argument("--metrics", type=Path, default=Path("metrics/eval.json"), help="headline figures")
     p.add_argument("--details", type=Path, default=Path("metrics/eval_details.json"),

@@ -21,6 +21,7 @@ from .dataset import schema
 from .dataset.lerobot import Export, plan
 from .dataset.splits import load_split
 from .errors import AdlError, run_cli
+from .lock import exclusive
 
 
 def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progress: bool = False) -> dict:
@@ -28,6 +29,15 @@ def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progre
     if out.exists():
         raise AdlError(f"{out}: already exists; export into a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
+    if names:
+        names = list(dict.fromkeys(names))  # an episode named twice is exported once
+    with exclusive(out):  # a second export into the same OUT stops at once instead of deleting this one's work
+        if out.exists():
+            raise AdlError(f"{out}: already exists; export into a new folder")
+        return _export_locked(data, out, names, progress)
+
+
+def _export_locked(data: Path, out: Path, names: list[str] | None, progress: bool) -> dict:
     tmp = out.with_name(f".{out.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:

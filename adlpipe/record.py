@@ -28,7 +28,7 @@ from tqdm import tqdm
 from .bags import messages as M
 from .bags.topics import TopicMap
 from .bags.writer import FORMATS, BagWriter
-from .cli import NON_NEGATIVE, Parser, float_range, int_range
+from .cli import SEED, Parser, float_range, int_range
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 from .geometry import matrix_to_quat
@@ -167,7 +167,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--size", type=int_range(16, 2048), default=224,
                    help="camera width and height in pixels (default 224; Push-T renders at this size too)")
     p.add_argument("--camera-hz", type=float_range(0.1, 120), default=15.0)
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--workers", type=int_range(1, 256), default=2)
     p.add_force()
     args = p.parse_args(argv)

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from .atomic import check_outputs, write_json_atomic
-from .cli import NON_NEGATIVE, Parser, float_range
+from .cli import SEED, Parser, float_range
 from .dataset import schema
 from .dataset.splits import make_split
 from .dvc_outputs import refuse_pipeline_outputs
@@ -21,7 +21,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("data", type=Path, help="HDF5 dataset from adlpipe.ingest")
     p.add_argument("-o", "--output", type=Path, help="split JSON (default: split.json beside the data)")
     p.add_argument("--test-fraction", type=float_range(0, 1, lo_open=True), default=0.2)
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_force()
     args = p.parse_args(argv)
     if not 0 < args.test_fraction < 1:

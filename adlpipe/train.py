@@ -47,7 +47,7 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from .atomic import atomic_path, write_json_atomic
-from .cli import NON_NEGATIVE, POSITIVE, Parser, float_range, int_range
+from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, float_range, int_range
 from .dataset import schema
 from .dataset.loader import (
     STATE_DIM,
@@ -375,7 +375,7 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"linear learning-rate warm-up (default {WARMUP_STEPS}, Diffusion Policy's)")
     p.add_argument("--grad-clip", type=float_range(0, 1e6), default=1.0,
                    help="clip the gradient norm at this (default 1; 0: no clipping, as Diffusion Policy at lr 1e-4)")
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--threads", type=NON_NEGATIVE, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument("--log", type=Path, help="per-epoch CSV for dvc plots (default: <out>/log.csv)")
     p.add_argument("--val-fraction", type=float_range(0, 0.9), default=0.1,

@@ -105,6 +105,21 @@ def test_a_dataset_with_a_nan_trajectory_is_refused(capsys: pytest.CaptureFixtur
     assert "non-finite" in line and name in line
 
 
+@pytest.mark.parametrize("shape", ["rgba", "not-square"])
+def test_a_first_frame_of_the_wrong_shape_is_refused(capsys: pytest.CaptureFixture, world: dict, tmp_path: Path,
+                                                     shape: str) -> None:
+    data = tmp_path / "shape.h5"
+    copy_dataset(world["data"], data)
+    with h5py.File(data, "a") as f:
+        name = sorted(f["episodes"])[0]
+        g = f["episodes"][name]
+        rgb = g["rgb"][()]
+        del g["rgb"]
+        g["rgb"] = np.concatenate([rgb, rgb[..., :1]], 2) if shape == "rgba" else rgb[:-4]
+    line = one_line_error(run_stage(capsys, "train", *data_args("train", world, data, tmp_path)))
+    assert "first-frame images" in line and name in line
+
+
 @pytest.mark.parametrize(("content", "needle"), [
     ("{", "cannot read split"),
     ('{"train": "abc", "test": []}', "list of episode names"),
@@ -121,7 +136,8 @@ def test_a_bad_split_is_one_line(capsys: pytest.CaptureFixture, world: dict, tmp
     assert needle in line
 
 
-@pytest.mark.parametrize("case", ["missing", "not-a-checkpoint", "no-stats", "unknown-key"])
+@pytest.mark.parametrize("case", ["missing", "not-a-checkpoint", "no-stats", "unknown-key", "nan-stats",
+                                  "nan-weights"])
 def test_a_bad_checkpoint_is_one_line(capsys: pytest.CaptureFixture, world: dict, tmp_path: Path, case: str) -> None:
     import torch
 
@@ -134,9 +150,19 @@ def test_a_bad_checkpoint_is_one_line(capsys: pytest.CaptureFixture, world: dict
         torch.save({k: v for k, v in ck.items() if k != "stats"}, model / "best.pt")
     elif case == "unknown-key":
         torch.save({**ck, "config": {**ck["config"], "wings": 2}}, model / "best.pt")
+    elif case.startswith("nan"):  # a policy that would act on NaN is refused, not run
+        if case == "nan-stats":  # the normalisation's statistics, as training stores them (lists)
+            stats = {**ck["stats"], "min": [float("nan")] * len(ck["stats"]["min"])}
+            torch.save({**ck, "stats": stats}, model / "best.pt")
+        else:
+            ema = ck["ema"]
+            name = next(k for k, v in ema.items() if torch.is_tensor(v) and v.is_floating_point())
+            torch.save({**ck, "ema": {**ema, name: torch.full_like(ema[name], float("nan"))}}, model / "best.pt")
     line = one_line_error(run_stage(capsys, "inspect", "--model", model, "--data", world["data"], "--split",
                                     world["split"], "-o", tmp_path / "x.rrd"))
     assert "best.pt" in line
+    if case.startswith("nan"):
+        assert "non-finite values" in line
 
 
 @pytest.mark.parametrize(("stage", "args", "needle"), [
@@ -159,6 +185,11 @@ def test_a_bad_checkpoint_is_one_line(capsys: pytest.CaptureFixture, world: dict
     ("split", ["x.h5", "--test-fraction", "1.5"], "out of range"),
     ("ingest", ["b.mcap", "-o", "x.h5", "--waypoints", "1"], "out of range"),
     ("inspect", ["--model", "m", "--samples", "0"], "out of range"),
+    ("train", ["--model", "fm_cnn", "--seed", str(2**70)], "out of range"),
+    ("evaluate", ["--models", "m", "--fm-methods", "bogus"], "invalid choice: 'bogus'"),
+    ("benchmark", ["--models", "m", "--seed", str(2**70)], "out of range"),
+    ("benchmark", ["--models", "m", "--episodes", "1000000000"], "out of range"),
+    ("benchmark", ["--models", "m", "--seed", str(2**32 - 5), "--episodes", "10"], "past the largest seed"),
 ])
 def test_bad_numbers_are_refused_at_the_parser(capsys: pytest.CaptureFixture, stage: str, args: list[str],
                                                needle: str) -> None:
@@ -304,7 +335,9 @@ def test_a_full_disk_is_one_line_and_keeps_the_old_output(world: dict, mcap_bags
     if stage == "ingest":  # a dataset of one bag, to be extended by the other two on a nearly full disk
         subprocess.run([sys.executable, "-m", "adlpipe.ingest", str(mcap_bags[0]), "-o", str(old), "--size", "64"],
                        cwd=REPO, check=True, capture_output=True)
-        inner = (f"cp '{old}' '{small}/x.h5' && head -c $(( $(stat -f -c %a '{small}') * $(stat -f -c %S '{small}') "
+        shards = old.with_suffix(".shards")  # the index and its episode files: a whole dataset to append to
+        inner = (f"cp '{old}' '{small}/x.h5' && cp -r '{shards}' '{small}/' && "
+                 f"head -c $(( $(stat -f -c %a '{small}') * $(stat -f -c %S '{small}') "
                  f"- 50000 )) /dev/zero > '{small}/filler'; '{sys.executable}' -m adlpipe.ingest "
                  + " ".join(f"'{b}'" for b in mcap_bags) + f" -o '{small}/x.h5' --size 64")
         target = "x.h5"
@@ -475,3 +508,71 @@ def test_the_horizon_comes_from_the_data(capsys: pytest.CaptureFixture, mcap_bag
         assert proc.returncode == 0, proc.stderr
         d = json.loads((tmp_path / "d.json").read_text())
         assert d["models"][f"m{n}"]["best"]["euler/1"]["px"] > 0
+        # the same episodes at 32 waypoints: the 16-waypoint model is not scored on them (one line, no output)
+        data32 = tmp_path / "w32.h5"
+        assert run_stage(capsys, "ingest", *mcap_bags, "-o", data32, "--size", "32").returncode == 0
+        (tmp_path / "d.json").unlink()
+        line = one_line_error(run_stage(capsys, "evaluate", "--models", tmp_path / "m16", "--data", data32, "--split",
+                                        split, "--steps", 1, "--repeats", 1, "--best-of", 1, "--metrics",
+                                        tmp_path / "e.json", "--details", tmp_path / "d.json", "--plots",
+                                        tmp_path / "p.csv", "--table", tmp_path / "t.md"))
+        assert "predicts 16 waypoints" in line and "holds 32" in line and not (tmp_path / "d.json").exists()
+
+
+@pytest.mark.parametrize("bad", ["binary-eval", "text-eval", "bad-log"])
+def test_report_on_bad_input_is_one_line_and_writes_nothing(capsys: pytest.CaptureFixture, tmp_path: Path,
+                                                           bad: str) -> None:
+    ev, rp, logs = tmp_path / "eval.json", tmp_path / "replay.json", tmp_path / "train"
+    logs.mkdir()
+    ev.write_text(json.dumps({"n_test": 1, "models": {"fm_cnn": {"best": {}, "last": {}}}, "training": {}}))
+    rp.write_text(json.dumps({"episodes": 1, "success": {}}))
+    (logs / "fm_cnn.csv").write_text("epoch,step,train_loss,test_loss,val_px\n1,5,0.5,0.4,3.0\n")
+    if bad == "binary-eval":
+        ev.write_bytes(bytes(range(256)) * 4)
+    elif bad == "text-eval":
+        ev.write_text("[1, 2")
+    else:
+        (logs / "fm_cnn.csv").write_bytes(b"\xff\xfe\x00garbage")
+    out = tmp_path / "reports" / "report.md"
+    line = one_line_error(run_stage(capsys, "report", "--eval", ev, "--replay", rp, "--train-logs", logs, "-o", out))
+    assert str(ev if bad != "bad-log" else logs / "fm_cnn.csv") in line
+    assert not (tmp_path / "reports").exists()  # no figure left behind
+
+
+@pytest.mark.parametrize(("episodes", "split", "needle"), [
+    (["²"], None, "no episode '²'"),  # a non-ASCII digit is not an index
+    (["abc"], None, "no episode 'abc'"),
+    (["0"], {"train": [], "test": ["ghost-0000"]}, "names episode 'ghost-0000', which"),
+])
+def test_inspect_episode_choices_are_one_line(capsys: pytest.CaptureFixture, world: dict, tmp_path: Path,
+                                              episodes: list[str], split: dict | None, needle: str) -> None:
+    split_file = world["split"]
+    if split is not None:
+        split_file = tmp_path / "split.json"
+        split_file.write_text(json.dumps(split))
+    line = one_line_error(run_stage(capsys, "inspect", "--model", world["model"], "--data", world["data"], "--split",
+                                    split_file, "--episodes", *episodes, "-o", tmp_path / "x.rrd"))
+    assert needle in line and not (tmp_path / "x.rrd").exists()
+
+
+@pytest.mark.parametrize("damage", ["truncated", "emptied", "text"])
+def test_a_damaged_episode_file_is_one_line_naming_episode_and_file(capsys: pytest.CaptureFixture, world: dict,
+                                                                    mcap_bags: list[Path], tmp_path: Path,
+                                                                    damage: str) -> None:
+    from adlpipe.dataset import schema
+
+    data = copy_dataset(world["data"], tmp_path / "adl.h5")
+    with h5py.File(data) as f:
+        name = sorted(f["episodes"])[1]
+        path = schema.episode_path(data, f, name)
+    raw = path.read_bytes()
+    path.write_bytes({"truncated": raw[:5000], "emptied": b"", "text": b"not hdf5\n"}[damage])
+    for stage, args in (("split", [data, "-o", tmp_path / "s.json"]),
+                        ("export", [data, tmp_path / "out"])):
+        line = one_line_error(run_stage(capsys, stage, *args))
+        assert name in line and str(path) in line and "cannot be read" in line, (stage, line)
+    assert not (tmp_path / "s.json").exists() and not (tmp_path / "out").exists()
+    before = data.read_bytes()  # an append refuses to build on it and changes nothing
+    line = one_line_error(run_stage(capsys, "ingest", mcap_bags[0], "-o", data, "--size", "64"))
+    assert line.startswith("adlpipe.ingest: error: cannot append to a damaged dataset") and name in line
+    assert data.read_bytes() == before

@@ -105,3 +105,52 @@ def test_an_export_never_overwrites_and_leaves_nothing_when_it_fails(ingested: P
     line = one_line_error(run_module("export", ingested, tmp_path / "new", "--episodes", "no-such-episode"))
     assert "no-such-episode" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
+
+
+@pytest.mark.parametrize(("damage", "needle"), [
+    ("no-frames", "no frames group"),
+    ("no-gripper", "frames lack gripper"),
+    ("short-ee", "ee_pos"),
+    ("nan-stamp", "not finite or go backwards"),
+])
+def test_a_malformed_episode_is_one_line_and_leaves_nothing(ingested: Path, tmp_path: Path, damage: str,
+                                                            needle: str) -> None:
+    import h5py
+    from conftest import copy_dataset, one_line_error, run_module
+
+    data = copy_dataset(ingested, tmp_path / "adl.h5")
+    with h5py.File(data) as f:
+        name = schema.episode_names(f)[1]
+        path = schema.episode_path(data, f, name)
+    with h5py.File(path, "r+") as f:
+        fr = f[schema.EPISODES][name]["frames"]
+        if damage == "no-frames":
+            del f[schema.EPISODES][name]["frames"]
+        elif damage == "no-gripper":
+            del fr["gripper"]
+        elif damage == "short-ee":
+            ee = fr["ee_pos"][()][:-2]
+            del fr["ee_pos"]
+            fr["ee_pos"] = ee
+        else:
+            t = fr["t"][()]
+            t[3] = np.nan
+            fr["t"][...] = t
+    line = one_line_error(run_module("export", data, tmp_path / "out"))
+    assert name in line and needle in line
+    assert not (tmp_path / "out").exists() and not (tmp_path / ".out.tmp").exists()
+
+
+def test_an_episode_named_twice_is_exported_once_and_a_second_export_waits_its_turn(ingested: Path,
+                                                                                     tmp_path: Path) -> None:
+    from conftest import one_line_error, run_module
+
+    from adlpipe.lock import exclusive
+
+    with schema.open_dataset(ingested) as f:
+        name = schema.episode_names(f)[0]
+    info = export_lerobot(ingested, tmp_path / "twice", [name, name])
+    assert info["total_episodes"] == 1
+    with exclusive(tmp_path / "busy"):  # another export holds this OUT: the second stops, deleting nothing
+        line = one_line_error(run_module("export", ingested, tmp_path / "busy"))
+    assert "in use by pid" in line and not (tmp_path / "busy").exists()

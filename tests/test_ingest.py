@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import shutil
 from pathlib import Path
 
 import h5py
@@ -146,13 +145,12 @@ def test_truncated_mcap_leaves_the_output_unchanged(mcap_bags: list[Path], inges
     bad = tmp_path / "cut.mcap"
     data = mcap_bags[0].read_bytes()
     bad.write_bytes(data[: len(data) // 2])
-    out = tmp_path / "adl.h5"
-    shutil.copy2(ingested, out)
+    out = copy_dataset(ingested, tmp_path / "adl.h5")  # the index with its episode files: a whole dataset
     before = _sha(out)
     line = one_line_error(run_module("ingest", bad, "-o", out, "--size", "64"))
     assert "truncated or corrupt MCAP" in line and "--recover" in line
     assert _sha(out) == before
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["adl.h5", "cut.mcap"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adl.h5", "adl.shards", "cut.mcap"]
 
 
 def test_a_bad_bag_among_good_ones_writes_nothing(mcap_bags: list[Path], tmp_path: Path) -> None:

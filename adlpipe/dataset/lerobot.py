@@ -141,7 +141,7 @@ def plan(f: h5py.File, names: list[str]) -> Layout:
         elif jn != joints:
             raise AdlError(f"episode {n}: joints {jn} differ from {joints} of the first episode; a LeRobot dataset "
                            "has one state vector: export the robots' episodes separately (--episodes)")
-        fr = g["frames"]
+        fr = _frames_checked(g, n)  # every episode checked before anything is written
         depth |= bool(g.attrs.get("has_depth", False)) and "depth" in fr and len(fr["depth"]) > 0
         affordance |= bool(g.attrs.get("has_affordance", False)) and "affordance" in fr and len(fr["affordance"]) > 0
         t = fr["t"][()]
@@ -179,11 +179,10 @@ class Export:
 
     def add(self, g: h5py.Group, index: int) -> None:
         """Episode `index` from its HDF5 group: one row group of its frames."""
-        fr = g["frames"]
+        name = g.name.split("/")[-1]
+        fr = _frames_checked(g, name)
         t = fr["t"][()]
         T = len(t)
-        if T == 0:
-            raise AdlError(f"episode {g.name}: no frames to export")
         ee = fr["ee_pos"][()].astype(np.float32)
         joints = fr["joint_pos"][()].astype(np.float32).reshape(T, -1)
         gripper = fr["gripper"][()].astype(np.float32).reshape(T, 1)
@@ -249,6 +248,35 @@ class Export:
         eps.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(pa.Table.from_pylist(self.episodes), eps)
         return info
+
+
+FRAME_ARRAYS = ("t", "rgb", "ee_pos", "joint_pos", "gripper")
+
+
+def _frames_checked(g: h5py.Group, name: str) -> h5py.Group:
+    """The episode's frames group, or one line naming the episode and what is wrong: no frames, a missing or
+    short per-frame array, stamps that are not finite or go backwards."""
+    if "frames" not in g or not isinstance(g["frames"], h5py.Group):
+        raise AdlError(f"episode {name}: no frames group (ingested without frames?); re-ingest its bag")
+    fr = g["frames"]
+    missing = [k for k in FRAME_ARRAYS if k not in fr]
+    if missing:
+        raise AdlError(f"episode {name}: frames lack {', '.join(missing)}")
+    T = len(fr["t"])
+    if T == 0:
+        raise AdlError(f"episode {name}: no frames to export")
+    short = [f"{k} ({len(fr[k])})" for k in FRAME_ARRAYS[1:] if len(fr[k]) != T]
+    if short:
+        raise AdlError(f"episode {name}: frames/t has {T} stamps but {', '.join(short)} rows")
+    t = fr["t"][()]
+    if not np.isfinite(t).all() or np.any(np.diff(t) < 0):
+        raise AdlError(f"episode {name}: frame stamps are not finite or go backwards")
+    for key, images in (("depth_index", "depth"), ("affordance_index", "affordance")):
+        if key in fr and len(fr[key]) != T:
+            raise AdlError(f"episode {name}: frames/t has {T} stamps but {key} {len(fr[key])} rows")
+        if key in fr and int(fr[key][()].max(initial=-1)) >= (len(fr[images]) if images in fr else 0):
+            raise AdlError(f"episode {name}: frames/{key} points past frames/{images}")
+    return fr
 
 
 def _synced(images: h5py.Dataset, index: np.ndarray, blank: np.ndarray) -> Iterator[np.ndarray]:

@@ -156,7 +156,12 @@ def open_dataset(path: Path | str, names: list[str] | None = None) -> Iterator[h
         # opened for this) before HDF5 follows any of them
         for n in wanted:
             file = files[n]
-            g = f[EPISODES][n]
+            try:
+                g = f[EPISODES][n]
+            except (KeyError, OSError) as exc:  # truncated, emptied, not HDF5, unreadable: HDF5 cannot open it
+                why = " ".join(str(exc).split())[:100]
+                raise AdlError(f"{path}: episode {n}: its file {file} cannot be read ({why}); re-ingest its bag "
+                               "into a new dataset") from None
             if Path(g.file.filename).resolve() != file:
                 raise AdlError(f"{path}: episode {n}: HDF5 opened {g.file.filename} instead of {file}")
             check_self_contained(g.file, f"{path}: episode {n}")
@@ -242,6 +247,12 @@ def check_episode(g: h5py.Group, where: str) -> None:
             raise AdlError(f"{where}: episode lacks a {ndim}-D '{key}' dataset")
     if "task" not in g.attrs:
         raise AdlError(f"{where}: episode has no 'task' attribute")
+    h, w, c = g["rgb"].shape
+    if c != 3 or h != w or g["affordance"].shape != (h, w) or ("depth" in g and g["depth"].shape != (h, w)):
+        raise AdlError(f"{where}: first-frame images rgb {g['rgb'].shape} / affordance {g['affordance'].shape}, "
+                       "expected (S, S, 3) / (S, S)")
+    if "frames" in g and "rgb" in g["frames"] and g["frames"]["rgb"].shape[1:] != (h, w, 3):
+        raise AdlError(f"{where}: frames/rgb {g['frames']['rgb'].shape[1:]} per frame, the first frame {(h, w, 3)}")
     t3, t2 = g["traj3d"], g["traj2d"]
     if t3.shape[1:] != (3,) or t2.shape != (t3.shape[0], 2):
         raise AdlError(f"{where}: traj3d/traj2d shapes {t3.shape}/{t2.shape}, expected (N, 3)/(N, 2)")
@@ -318,3 +329,12 @@ def read_catalog(f: h5py.File) -> list[dict[str, str]]:
         return []
     cols = {k: [v.decode() if isinstance(v, bytes) else str(v) for v in f[CATALOG][k][()]] for k in CATALOG_FIELDS}
     return [dict(zip(CATALOG_FIELDS, row, strict=True)) for row in zip(*cols.values(), strict=True)]
+
+
+def check_horizon(model: Path | str, horizon: int, f: h5py.File, data: Path | str) -> None:
+    """A first-frame model predicts its trajectories at the dataset's waypoint count, or it is not scored on it."""
+    n = int(f.attrs.get("n_waypoints", horizon))
+    if n != horizon:
+        raise AdlError(f"{model}: predicts {horizon} waypoints but {data} holds {n} per trajectory; use data "
+                       f"ingested with --waypoints {horizon} (or train on this data)")
+

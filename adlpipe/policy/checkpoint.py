@@ -47,6 +47,26 @@ def load_policy(path: Path, placement: Placement | None = None) -> tuple[Policy,
         policy.load_state_dict(ck["ema"])
     except (TypeError, ValueError, KeyError, RuntimeError, AttributeError) as exc:
         raise AdlError(f"{path}: checkpoint does not match this adlpipe's models ({type(exc).__name__})") from exc
+    bad = [k for k, v in _tensors(ck["stats"]) if not torch.isfinite(v).all()]
+    bad += [k for k, v in ck["ema"].items()
+            if torch.is_tensor(v) and v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:  # a policy that would act on NaN: every prediction, every physics step after it, would be garbage
+        raise AdlError(f"{path}: checkpoint holds non-finite values in {', '.join(sorted(bad)[:3])}"
+                       f"{' and more' if len(bad) > 3 else ''}; retrain or use another checkpoint")
     placement = placement or Placement()
     policy = policy.to(placement.device).eval()
     return (policy.compile_for_inference() if placement.compile else policy), ck
+
+
+def _tensors(tree: object, prefix: str = "stats") -> list[tuple[str, torch.Tensor]]:
+    """Every tensor (or number array) in a nested stats dict, with its key path."""
+    if isinstance(tree, dict):
+        return [x for k, v in tree.items() for x in _tensors(v, f"{prefix}.{k}")]
+    if torch.is_tensor(tree):
+        return [(prefix, tree.float())]
+    if isinstance(tree, int | float | list | tuple):
+        try:
+            return [(prefix, torch.as_tensor(tree, dtype=torch.float64))]
+        except (TypeError, ValueError):
+            return []
+    return []
