@@ -25,12 +25,13 @@ import rerun.blueprint as rrb
 import torch
 
 from .atomic import atomic_path, check_outputs
-from .cli import NON_NEGATIVE, Parser, int_range
+from .cli import SEED, Parser, int_range
 from .dataset import schema
 from .dataset.loader import Normalizer, observation
 from .dataset.splits import load_split
 from .dataset.viewer import affordance_overlay, write_dataset_recording
-from .errors import AdlError, run_cli
+from .errors import AdlError, read_json_object, run_cli
+from .outcomes import outcome_text
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import predict
 from .runtime import Placement, add_device_args
@@ -46,17 +47,20 @@ def blueprint() -> rrb.Blueprint:
     ), collapse_panels=True)
 
 
-def write_recording(out: Path, episodes: list[schema.Episode], preds: list[np.ndarray], model: str) -> None:
-    """preds[i]: (K, N, 5) samples (u, v, x, y, z) for episodes[i]. Written to a temp file, then renamed."""
+def write_recording(out: Path, episodes: list[schema.Episode], preds: list[np.ndarray], model: str,
+                    outcomes: list[str] | None = None) -> None:
+    """preds[i]: (K, N, 5) samples (u, v, x, y, z) for episodes[i]; outcomes[i]: replay's verdicts on it (logged as
+    world/replay when not empty). Written to a temp file, then renamed."""
     with atomic_path(out) as tmp:
-        _record(tmp, episodes, preds, model)
+        _record(tmp, episodes, preds, model, outcomes or [""] * len(episodes))
 
 
-def _record(path: Path, episodes: list[schema.Episode], preds: list[np.ndarray], model: str) -> None:
+def _record(path: Path, episodes: list[schema.Episode], preds: list[np.ndarray], model: str,
+            outcomes: list[str]) -> None:
     rec = rr.RecordingStream("adlpipe_inspect")
     rec.save(path, default_blueprint=blueprint())
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    for i, (ep, pred) in enumerate(zip(episodes, preds, strict=True)):
+    for i, (ep, pred, outcome) in enumerate(zip(episodes, preds, outcomes, strict=True)):
         rec.set_time("episode", sequence=i)
         h, w = ep.rgb.shape[:2]
         T = ep.T_base_camera
@@ -71,6 +75,8 @@ def _record(path: Path, episodes: list[schema.Episode], preds: list[np.ndarray],
         rec.log("world/gt", rr.LineStrips3D([ep.traj3d], colors=[GT_COLOR], radii=0.003))
         rec.log("world/pred", rr.LineStrips3D(list(pred[:, :, 2:]), colors=[PRED_COLOR], radii=0.003))
         rec.log("world/task", rr.TextDocument(f"{ep.task}\n{ep.source_path}"))
+        if outcome:
+            rec.log("world/replay", rr.TextDocument(outcome))
     rec.flush()
     rec.disconnect()
 
@@ -87,9 +93,12 @@ def main(argv: list[str] | None = None) -> int:
                    "(default: every episode)")
     p.add_argument("--samples", type=int_range(1, 1000), default=4, help="predicted samples drawn per episode")
     p.add_argument("--steps", type=int_range(1, 100), default=4)
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--checkpoint", choices=sorted(CHECKPOINTS), default="best",
                    help="best: the lowest validation px (best.pt, default); last: model.pt")
+    p.add_argument("--replay", type=Path, metavar="DETAILS",
+                   help="replay's details (metrics/replay_details.json): log each episode's replay outcome for this "
+                   "model (success, or the parts of the predicate that failed, and the peak force on the person)")
     p.add_argument("-o", "--output", type=Path, default=Path("preds.rrd"))
     add_device_args(p, compile_option=True)
     args = p.parse_args(argv)
@@ -105,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
                        "itself: --dataset)")
     norm = Normalizer(ck["stats"])
     with schema.open_dataset(args.data) as f:
+        schema.check_horizon(args.model, policy.cfg.horizon, f, args.data)
         all_names = schema.episode_names(f)
         test = load_split(args.split or args.data.with_name("split.json"))["test"] or all_names
         names = pick_episodes(args.episodes or ["0"], test, "the test split", all_names, args.data)
@@ -115,7 +125,11 @@ def main(argv: list[str] | None = None) -> int:
     k = 1 if policy.family == "mse" else args.samples
     samples = torch.stack([norm.unnormalize(predict(policy, obs, args.steps, None, gen, placement))
                            for _ in range(k)], dim=1)
-    write_recording(args.output, eps, list(samples.numpy()), policy.cfg.model)
+    outcomes = None
+    if args.replay is not None:
+        details = read_json_object(args.replay, "replay details")
+        outcomes = [outcome_text(details, args.model.name, n) for n in names]
+    write_recording(args.output, eps, list(samples.numpy()), policy.cfg.model, outcomes)
     print(f"{args.output}: {len(eps)} episode(s), {k} sample(s) each from {args.model}")
     return 0
 
@@ -126,9 +140,11 @@ def pick_episodes(wanted: list[str], indexed: list[str], indexed_what: str, all_
     itself an episode's name)."""
     names = []
     for e in wanted:
-        if e.isdigit() and e not in all_names:
+        if e.isascii() and e.isdigit() and e not in all_names:
             if int(e) >= len(indexed):
                 raise AdlError(f"episode index {e} out of range: {indexed_what} has {len(indexed)} episodes")
+            if indexed[int(e)] not in all_names:  # a split naming an episode the dataset lacks
+                raise AdlError(f"{indexed_what} names episode {indexed[int(e)]!r}, which {data} does not hold")
             names.append(indexed[int(e)])
         elif e in all_names:
             names.append(e)

@@ -76,3 +76,18 @@ def pick_failures(diags: dict[str, dict], ok: dict[str, bool], tasks: dict[str, 
             picked.append(name)
             seen.add(tasks.get(name))
     return (picked + [x for x in failed if x not in picked])[:n]
+
+
+def outcome_text(details: dict, model: str, episode: str) -> str:
+    """What replay found for one episode and every replayed label of one model (its samplers, step counts and
+    speed profiles): success, or the parts that failed, and the peak force on the person. Empty when none."""
+    lines = []
+    for label, per in details.get("per_episode", {}).items():
+        if episode not in per or not (label == model or label.startswith(f"{model}/") or label.startswith(f"{model}@")):
+            continue
+        d = details.get("diagnostics", {}).get(label, {}).get(episode, {})
+        what = "success" if per[episode] else "failed: " + (", ".join(PART_NAMES.get(p, p) for p in d.get("failed", []))
+                                                            or "?")
+        force = f", peak force {d['peak_force_n']:.1f} N" if "peak_force_n" in d else ""
+        lines.append(f"{label}: {what}{force}")
+    return "\n".join(lines)

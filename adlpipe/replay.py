@@ -43,7 +43,7 @@ import torch
 from tqdm import tqdm
 
 from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import NON_NEGATIVE, POSITIVE, Parser, int_range
+from .cli import POSITIVE, SEED, Parser, int_range
 from .dataset import schema
 from .dataset.loader import (
     Normalizer,
@@ -240,6 +240,7 @@ def predict_all(model_dir: Path, checkpoint: str, data: Path, names: list[str], 
     policy, ck = load_policy(model_dir / checkpoint, placement)
     norm = Normalizer(ck["stats"])
     with h5py.File(data, "r") as f:
+        schema.check_horizon(model_dir, policy.cfg.horizon, f, data)
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
                                                         policy.cfg.use_depth)) for n in names])
     out = {}
@@ -265,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-episodes", type=POSITIVE,
                    help="replay at most this many test episodes, taken round-robin over the tasks")
     p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1))
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--speed-profile", nargs="+", choices=["demo", "fixed"], default=["demo"],
                    help="open loop: run each trajectory over the demonstration's duration (demo), or over its own "
                    "path length at the task's median demonstrated speed (fixed, a row labelled @fixed-speed)")
@@ -369,18 +370,21 @@ def main(argv: list[str] | None = None) -> int:
         every = [o for v in per.values() for o in v]
         result[label] = {"overall": float(np.mean(every)), "n": len(every),
                          "interval": list(success_interval(sum(every), len(every))),
-                         "per_task": {t: float(np.mean(v)) for t, v in sorted(per.items())}}
+                         "per_task": {t: float(np.mean(v)) for t, v in sorted(per.items())},
+                         "per_task_n": {t: len(v) for t, v in sorted(per.items())}}
     tasks = sorted({ep.task for ep in eps})
-    lines = ["| policy | overall [95 %] | n | " + " | ".join(tasks) + " |",
+    per_task_n = {t: sum(ep.task == t for ep in eps) for t in tasks}
+    lines = ["| policy | overall [95 %] | n | " + " | ".join(f"{t} (n = {per_task_n[t]})" for t in tasks) + " |",
              "| --- | ---: | ---: |" + " ---: |" * len(tasks)]
     for label, r in result.items():
-        cells = " | ".join(f"{100 * r['per_task'].get(t, float('nan')):.0f}" for t in tasks)
+        cells = " | ".join(rate_cell(round(r["per_task"][t] * r["per_task_n"][t]), r["per_task_n"][t])
+                           if t in r["per_task"] else "-" for t in tasks)
         lines.append(f"| {label} | {rate_cell(round(r['overall'] * r['n']), r['n'])} | {r['n']} | {cells} |")
     mode = ("closed-loop (execute Ta of the predicted waypoints, then re-plan)" if args.closed_loop
             else "open-loop")
     title = (f"# Success rate (%) of {mode} execution in MuJoCo, test split, {args.checkpoint} checkpoints\n\n"
              "Success: the task's predicate, with any contact force on the manikin above 20 N a failure. Overall: "
-             "the rate with Wilson's 95 % interval over n scenes; per task: the rate alone (few scenes each).\n\n")
+             "the rate with Wilson's 95 % interval over n scenes; per task likewise over its n scenes (few: wide).\n\n")
     failures = failure_table(diagnostics, per_episode) if args.closed_loop else ""
     outcome = breakdown_lines(diagnostics, per_episode)
     if outcome:

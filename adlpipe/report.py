@@ -18,34 +18,28 @@ broken down by the part of the task's predicate that failed, the force on the pe
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
 import sys
 from pathlib import Path
 
-from .atomic import atomic_path, check_outputs, json_text, write_all_atomic
+from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import Parser
 from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, run_cli
+from .errors import AdlError, read_json_object, run_cli
 from .outcomes import breakdown_lines
 from .policy.blind import BLIND
 from .stats import interval_cell, paired_difference, paired_success, rate_cell
-
-FIXED = "@fixed-speed"  # replay's label suffix for a trajectory run at the task's demonstrated speed
+from .tables import FIXED, blind_lines, default_row, rate_of, replay_label
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
 AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px
 
 
 def _load(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise AdlError(f"{path}: cannot read metrics ({exc})") from exc
-    if not isinstance(data, dict):
-        raise AdlError(f"{path}: not a metrics file (expected a JSON object)")
-    return data
+    return read_json_object(path, "metrics")
 
 
 def _row(ev: dict, model: str, method: str, steps: int, checkpoint: str = "best") -> dict | None:
@@ -184,7 +178,8 @@ def closed_loop_lines(open_rp: dict, cl: dict) -> list[str]:
     rows += [(f"closed loop: {label}" if not label.startswith("oracle") else
               f"closed loop: {label} (the demonstration's own plans in the policy's format: the ceiling)", per)
              for label, per in cl["per_episode"].items()]
-    lines = ["| policy | overall | " + " | ".join(task_list) + " |", "| --- | ---: |" + " ---: |" * len(task_list)]
+    lines = ["| policy | overall [95 %] | " + " | ".join(f"{t} % (n)" for t in task_list) + " |",
+             "| --- | ---: |" + " ---: |" * len(task_list)]
     for label, per in rows:
         got = [per[n] for n in names if n in per]
         if len(got) < len(names):
@@ -192,8 +187,8 @@ def closed_loop_lines(open_rp: dict, cl: dict) -> list[str]:
         cells = []
         for t in task_list:
             v = [per[n] for n in names if tasks.get(n) == t]
-            cells.append(f"{100 * sum(v) / len(v):.0f}")
-        lines.append(f"| {label} | {100 * sum(got) / len(got):.0f} | " + " | ".join(cells) + " |")
+            cells.append(f"{100 * sum(v) / len(v):.0f} ({len(v)})")
+        lines.append(f"| {label} | {rate_cell(sum(got), len(got))} n={len(got)} | " + " | ".join(cells) + " |")
     training = cl.get("training", {})
     late = [m for m, t in training.items() if not t.get("converged")]
     lines += ["", f"The same {len(names)} test episodes for every row. Closed-loop models: To frames in, Tp waypoints "
@@ -268,12 +263,17 @@ def convergence_lines(ev: dict) -> list[str]:
 
 
 def _read_log(path: Path) -> dict[str, list[float]]:
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
+    """A training log's columns as numbers (empty cells NaN); a log that is not such a CSV is one line."""
     cols: dict[str, list[float]] = {}
-    for r in rows:
-        for k, v in r.items():
-            cols.setdefault(k, []).append(float(v) if v not in ("", None, "None") else math.nan)
+    try:
+        with open(path, newline="") as f:
+            for r in csv.DictReader(f):
+                for k, v in r.items():
+                    cols.setdefault(str(k), []).append(float(v) if v not in ("", None, "None") else math.nan)
+    except (OSError, UnicodeDecodeError, csv.Error, ValueError, TypeError) as exc:
+        raise AdlError(f"{path}: not a training log CSV ({type(exc).__name__}: {str(exc)[:80]})") from None
+    if not {"epoch", "train_loss"} <= set(cols):
+        raise AdlError(f"{path}: not a training log CSV (no epoch and train_loss columns)")
     return cols
 
 
@@ -283,9 +283,8 @@ def headline_lines(ev: dict, rp: dict) -> list[str]:
     lines = ["| model | sampler | steps | px [95 %] | cm [95 %] | ms | converged | success (replay) [95 %] | "
              "success at a fixed speed |", "| --- | --- | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
     success = rp.get("success", {})
-    for model, by_ck in ev.get("models", {}).items():
-        rows = list(by_ck.get("best", {}).values())
-        r = next((x for x in rows if x.get("default")), None) or (min(rows, key=lambda x: x["steps"]) if rows else None)
+    for model in ev.get("models", {}):
+        r = default_row(ev, model)
         if r is None:
             continue
         conv = {True: "yes", False: "**no**", None: "?"}[ev.get("training", {}).get(model, {}).get("converged")]
@@ -293,50 +292,8 @@ def headline_lines(ev: dict, rp: dict) -> list[str]:
         ok, fixed = success.get(label), success.get(label + FIXED)
         cells = [interval_cell(r[k], r[k + "_ci"], 2) if r.get(k + "_ci") else f"{r[k]:.2f}" for k in ("px", "cm")]
         lines.append(f"| {model} | {r['method']} | {r['steps']} | {cells[0]} | {cells[1]} | {r['ms']:.1f} | "
-                     f"{'- (not trained)' if model == BLIND else conv} | {_rate(ok)} | {_rate(fixed)} |")
+                     f"{'- (not trained)' if model == BLIND else conv} | {rate_of(ok)} | {rate_of(fixed)} |")
     return lines
-
-
-def _rate(r: dict | None) -> str:
-    return "-" if r is None else f"{rate_cell(round(r['overall'] * r['n']), r['n'])} n={r['n']}"
-
-
-def replay_label(model: str, row: dict) -> str:
-    """Replay's label of an evaluated model row: <model>/<sampler>-<steps>, or the model alone for a regressor and
-    the blind baseline."""
-    return model if row["method"] in ("direct", "task_mean") else f"{model}/{row['method']}-{row['steps']}"
-
-
-def default_row(ev: dict, model: str) -> dict | None:
-    rows = list(ev.get("models", {}).get(model, {}).get("best", {}).values())
-    return next((x for x in rows if x.get("default")), None) or (min(rows, key=lambda x: x["steps"]) if rows else None)
-
-
-def blind_lines(ev: dict, rp: dict) -> list[str]:
-    """How far each model is above the blind baseline, paired on the same test episodes: the px difference (model -
-    blind, negative: the model is better) with its bootstrap interval, and the success difference by McNemar."""
-    blind = default_row(ev, BLIND)
-    if blind is None or not blind.get("px_per_episode"):
-        return []
-    per = rp.get("per_episode", {})
-    lines = ["| model | px - blind px [95 %] | verdict: better than blind | success vs blind |",
-             "| --- | ---: | --- | --- |"]
-    for model in ev.get("models", {}):
-        r = default_row(ev, model)
-        if model == BLIND or r is None or not r.get("px_per_episode"):
-            continue
-        d = paired_difference(r["px_per_episode"], blind["px_per_episode"])
-        a, b = per.get(replay_label(model, r), {}), per.get(BLIND, {})
-        both = sorted(set(a) & set(b))
-        vs = "-"
-        if both:
-            test = paired_success([a[n] for n in both], [b[n] for n in both])
-            sa, sb = sum(a[n] for n in both), sum(b[n] for n in both)
-            vs = f"{100 * sa / len(both):.0f} vs {100 * sb / len(both):.0f} % ({test})"
-        lines.append(f"| {model} | {d.mean:+.2f} [{d.low:+.2f}, {d.high:+.2f}] | {d.verdict()} | {vs} |")
-    return lines + ["", f"Blind: {blind['px']:.2f} px, {blind['cm']:.2f} cm over {blind['n']} test episodes; replay "
-                    f"{_rate(rp.get('success', {}).get(BLIND))}. A model that is not better than blind has learnt "
-                    "nothing from the image that the task name does not give."]
 
 
 def summary_files(ev: dict, rp: dict, cl: dict) -> dict[str, str]:
@@ -387,7 +344,7 @@ def label_steps(ax: object, steps: list[int]) -> None:
     ax.xaxis.set_minor_locator(NullLocator())
 
 
-def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> list[Path]:
+def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> dict[Path, bytes]:
     """The seed's Fig. 2 (train/test loss FM vs DP, one panel each: their losses are of different objectives),
     val px vs epoch, px and ms vs steps (all models on a log axis, and beside it the models within 3x of the best on
     a linear one, so one far-off model does not hide the others' differences), as PNG files."""
@@ -396,15 +353,14 @@ def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    made = []
+    made: dict[Path, bytes] = {}
     styles = model_styles(list(ev.get("models", {})) or list(logs))
 
     def save(fig, name: str) -> None:  # noqa: ANN001
-        path = out_dir / name
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
         plt.close(fig)
-        made.append(path)
+        made[out_dir / name] = buf.getvalue()  # written with the report, all or none
 
     read = {m: _read_log(p) for m, p in logs.items() if p.exists()}
     if read:
@@ -515,7 +471,7 @@ def main(argv: list[str] | None = None) -> int:
         if t.exists():
             parts += [t.read_text().replace("# ", "## ", 1), ""]
     summary = {args.summary / f"{k}.json": v for k, v in summary_files(ev, rp, cl).items()} if args.summary else {}
-    write_all_atomic({args.output: "\n".join(parts), **summary})
+    write_all_atomic({args.output: "\n".join(parts), **summary, **figs})
     print("\n".join(compared))
     return 0
 

@@ -185,10 +185,11 @@ def test_inspect_writes_a_readable_rerun_recording(pipeline: Path, tmp_path: Pat
 
     rrd = tmp_path / "preds.rrd"
     run_module("inspect", "--model", pipeline / "models" / "fm_cnn", "--data", pipeline / "data" / "adl.h5",
-               "--episodes", "0", "3", "--samples", "3", "-o", rrd, check=True)
+               "--episodes", "0", "3", "--samples", "3", "--replay", pipeline / "metrics" / "replay_details.json",
+               "-o", rrd, check=True)
     reader = RrdReader(str(rrd))
     summary = reader.store().summary()
-    for entity in ("/world/camera", "/world/camera/image", "/world/camera/image/rgb",
+    for entity in ("/world/replay", "/world/camera", "/world/camera/image", "/world/camera/image/rgb",
                    "/world/camera/image/affordance", "/world/camera/image/gt", "/world/camera/image/pred",
                    "/world/gt", "/world/pred"):
         assert f"{entity} rows=2 " in summary, (entity, summary)
@@ -206,6 +207,11 @@ def test_inspect_writes_a_readable_rerun_recording(pipeline: Path, tmp_path: Pat
     gt3d = np.array(strips["/world/gt"][0][0])
     assert gt3d.shape == (32, 3) and np.all(np.abs(gt3d) < 2.0)  # metres in the base frame
     assert [e.kind for e in reader.blueprints()] == ["blueprint"]
+    texts = [t for chunk in reader.stream().to_chunks() if str(chunk.entity_path) == "/world/replay"
+             for name in chunk.to_record_batch().schema.names if name.endswith(":text")
+             for t in chunk.to_record_batch().column(name).to_pylist()]
+    # replay's verdict on each shown episode for every label of this model (samplers, speed profiles)
+    assert len(texts) == 2 and all("fm_cnn/euler-1: " in str(t) and "peak force" in str(t) for t in texts), texts
 
 
 def test_closed_loop_replay_replans_from_new_images(pipeline: Path, tmp_path: Path) -> None:

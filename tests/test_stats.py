@@ -75,3 +75,64 @@ def test_paired_difference_verdicts() -> None:
     assert d.verdict().startswith("not resolved at n = 20 (about ") and d.low < 0 < d.high
     assert paired_difference([2.0] * 5, [2.0] * 5).verdict() == "not resolved at n = 5"
     assert paired_difference([1.0], [1.0], scale=1.1).mean == pytest.approx(-0.1)  # within 10 % of the second
+
+
+def _details(px: dict[str, list[float]], success: dict[str, list[bool]], converged: bool) -> tuple[dict, dict]:
+    """Synthetic evaluate / replay details in the stages' own format: one default row per model."""
+    keys = {"fm_cnn": ("euler", 1), "dp_cnn": ("ddpm", 16), "bc_cnn": ("direct", 1)}
+    models, per_episode, rates = {}, {}, {}
+    for m, v in px.items():
+        method, steps = keys[m]
+        row = {"method": method, "steps": steps, "default": True, "px": sum(v) / len(v), "cm": 2 * sum(v) / len(v),
+               "px_per_episode": v}
+        models[m] = {"best": {f"{method}/{steps}": row}}
+        label = m if method == "direct" else f"{m}/{method}-{steps}"
+        per_episode[label] = {f"e{i}": ok for i, ok in enumerate(success[m])}
+        rates[label] = {"overall": sum(success[m]) / len(success[m]), "n": len(success[m])}
+    ev = {"n_test": len(next(iter(px.values()))), "models": models,
+          "training": {m: {"converged": converged} for m in px}}
+    return ev, {"success": rates, "per_episode": per_episode}
+
+
+def test_seeds_summary_spread_and_claims_over_seeds() -> None:
+    """Three seeds where FM is clearly ahead of DP on every episode (supported in every seed and over seeds) and
+    BC is FM plus zero-mean noise (not resolved): the verdicts and the spread come out as constructed."""
+    import numpy as np
+
+    from adlpipe.seeds import summarise
+
+    rng = np.random.default_rng(0)
+    evals, replays = [], []
+    for seed in range(3):
+        base = rng.uniform(2, 4, 40)
+        fm = base + 0.1 * seed
+        dp = base + 1.0
+        bc = fm + rng.normal(0, 0.3, 40) * np.where(np.arange(40) % 2, 1, -1)
+        ev, rp = _details({"fm_cnn": list(fm), "dp_cnn": list(dp), "bc_cnn": list(bc)},
+                          {"fm_cnn": [i < 10 + seed for i in range(40)], "dp_cnn": [i < 8 for i in range(40)],
+                           "bc_cnn": [i < 9 for i in range(40)]}, converged=seed != 1)
+        evals.append(ev)
+        replays.append(rp)
+    s = summarise(evals, replays)
+    fm = s["models"]["fm_cnn"]
+    assert fm["px"] == pytest.approx([e["models"]["fm_cnn"]["best"]["euler/1"]["px"] for e in evals])
+    assert fm["px_sd"] == pytest.approx(np.std(fm["px"], ddof=1))
+    assert fm["success"] == pytest.approx([0.25, 0.275, 0.3]) and fm["success_mean"] == pytest.approx(0.275)
+    assert fm["converged"] == [True, False, True]
+    claims = {c["claim"]: c for c in s["claims"]}
+    # no FM-16 row in these details: that claim is left out, not guessed
+    assert "FM-16 more accurate than DP-16 (clean-trajectory pair)" not in claims
+    c = claims["FM-1 within 10 % of DP-16 (clean-trajectory pair)"]
+    assert c["per_seed"] == ["supported"] * 3 and c["over_seeds"] == "supported"
+    b = claims["FM-1 more accurate than BC (same U-Net)"]
+    assert b["over_seeds"].startswith("not resolved at n = 40")
+
+
+def test_seeds_refuse_different_test_splits() -> None:
+    from adlpipe.errors import AdlError
+    from adlpipe.seeds import summarise
+
+    a = _details({"fm_cnn": [1.0, 2.0]}, {"fm_cnn": [True, False]}, True)
+    b = _details({"fm_cnn": [1.0, 2.0, 3.0]}, {"fm_cnn": [True, False, True]}, True)
+    with pytest.raises(AdlError, match="different test splits"):
+        summarise([a[0], b[0]], [a[1], b[1]])

@@ -1,0 +1,183 @@
+"""README's result tables, generated from the committed results of a measured run (one source of truth).
+
+    python -m adlpipe.results --save-from metrics        # after `dvc repro`: keep the run's details in results/
+    python -m adlpipe.results --save-seeds pipelines/seeds/metrics/seeds.json
+    python -m adlpipe.results                            # rewrite README's tables from results/
+    python -m adlpipe.results --check                    # exit 1 when README and results/ disagree (a test runs it)
+
+README marks each generated table with `<!-- results:NAME -->` ... `<!-- /results:NAME -->`; everything between
+the marks is written here from results/default/ (evaluate's, replay's and the closed loop's details) and
+results/seeds/seeds.json, with the same cells the report prints (adlpipe.tables, adlpipe.outcomes). Prose around
+the tables is written by hand; the tables are not.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import sys
+from pathlib import Path
+
+from .atomic import atomic_path, write_text_atomic
+from .cli import Parser
+from .errors import AdlError, read_json_object, run_cli
+from .outcomes import breakdown_lines
+from .stats import interval_cell, rate_cell
+from .tables import FIXED, blind_lines, rate_of, seeds_lines
+
+RUN_FILES = ("eval_details.json", "replay_details.json", "replay_closed_loop_details.json")
+
+# (README row, model, evaluate's row key ("*": the model's lowest-px row), replay's label)
+DEFAULT_ROWS = (
+    ("demonstrations (recorded trajectories, 32 waypoints)", None, None, "demo"),
+    ("FM-CNN, x1 output, 1 Euler step", "fm_cnn", "euler/1", "fm_cnn/euler-1"),
+    ("FM-CNN, x1 output, 16 Euler steps", "fm_cnn", "euler/16", "fm_cnn/euler-16"),
+    ("DP-CNN, clean-sample output, 16 DDPM steps (leading)", "dp_cnn", "ddpm/16", "dp_cnn/ddpm-16"),
+    ("DP-CNN, clean-sample output, 1 DDPM step (trailing)", "dp_cnn", "ddpm_trailing/1", None),
+    ("BC-CNN (MSE, same U-Net)", "bc_cnn", "direct/1", "bc_cnn"),
+    ("FM-CNN, velocity output (the paper's), 1 Euler step", "fm_cnn_velocity", "euler/1", "fm_cnn_velocity/euler-1"),
+    ("FM-CNN, velocity output, 16 Euler steps", "fm_cnn_velocity", "euler/16", "fm_cnn_velocity/euler-16"),
+    ("DP-CNN, epsilon output (the paper's), 16 DDPM steps", "dp_cnn_epsilon", "ddpm/16", "dp_cnn_epsilon/ddpm-16"),
+    ("DP-CNN, epsilon output, its lowest-px row", "dp_cnn_epsilon", "*", None),
+    ("blind baseline: the task's mean training trajectory", "blind", "task_mean/1", "blind"),
+)
+OPEN_LOOP_OF = {"fm_cnn": "fm_cnn/euler-1", "dp_cnn": "dp_cnn/ddpm-16", "bc_cnn": "bc_cnn"}
+
+
+def _load(path: Path) -> dict:
+    return read_json_object(path, "the committed results")
+
+
+def _cell(r: dict, key: str) -> str:
+    return interval_cell(r[key], r[f"{key}_ci"], 2) if r.get(f"{key}_ci") else f"{r[key]:.2f}"
+
+
+def default_table(ev: dict, rp: dict) -> list[str]:
+    n = ev["n_test"]
+    lines = ["| policy | px [95 %] | px224 | cm [95 %] | ms | replay success % [95 %] | at a fixed speed | "
+             "val px best | converged |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    success = rp["success"]
+    for text, model, key, label in DEFAULT_ROWS:
+        rows = ev["models"].get(model, {}).get("best", {}) if model else {}
+        r = min(rows.values(), key=lambda x: x["px"]) if key == "*" and rows else rows.get(key)
+        if model and r is None:
+            continue
+        if key == "*":
+            text = f"{text}: {r['method']} {r['steps']} steps"
+        t = ev.get("training", {}).get(model, {})
+        conv = {True: "yes", False: "no", None: "-"}[t.get("converged")]
+        val = f"{t['val_px_best']:.2f}" if t.get("val_px_best") is not None else ""
+        first = key in (None, "task_mean/1") or r.get("default")  # validation and convergence: once per model
+        px = f"{_cell(r, 'px')} | {r['px224']:.2f} | {_cell(r, 'cm')} | {r['ms']:.1f}" if r else " | | | "
+        lines.append(f"| {text} | {px} | {rate_of(success.get(label)) if label else ''} | "
+                     f"{rate_of(success.get(label + FIXED)) if label else ''} | {val if first else ''} | "
+                     f"{conv if first and model else ''} |")
+    lines += ["", f"n = {n} test episodes (px, cm: 95 % bootstrap intervals); replay: Wilson's 95 % interval over "
+              "n scenes."]
+    return lines
+
+
+def closed_loop_table(rp: dict, cl: dict) -> list[str]:
+    """Per closed-loop policy (and the oracle): success at each Ta, open loop on the same scenes, val px and
+    convergence of its closed-loop training."""
+    by: dict[str, dict[int, dict]] = {}
+    for label, r in cl["success"].items():
+        head, ta = label.rsplit("/Ta-", 1)
+        by.setdefault(head, {})[int(ta)] = r
+    tas = sorted({ta for v in by.values() for ta in v})
+    names = sorted({n for per in cl["per_episode"].values() for n in per})
+    lines = [f"| policy | success % at Ta = {' / '.join(map(str, tas))} (n = {len(names)}) | open loop on these "
+             "scenes | val px | converged |", "| --- | ---: | ---: | ---: | --- |"]
+    for head, per_ta in by.items():
+        model = head.split("/")[0]
+        cells = " / ".join(f"{100 * per_ta[ta]['overall']:.0f}" if ta in per_ta else "-" for ta in tas)
+        ol = rp["per_episode"].get(OPEN_LOOP_OF.get(model, ""), {})
+        got = [ol[n] for n in names if n in ol]
+        open_cell = (f"{OPEN_LOOP_OF[model]}: {rate_cell(sum(got), len(got))}" if len(got) == len(names) and got
+                     else "")
+        t = cl.get("training", {}).get(model, {})
+        val = f"{t['val_px_best']:.2f}" if t.get("val_px_best") is not None else ""
+        conv = {True: "yes", False: "no", None: ""}[t.get("converged")]
+        text = (f"{head}: the demonstrations' own plans in the policy's format (the executor's ceiling)"
+                if model.startswith("oracle") else f"closed-loop {head}")
+        lines.append(f"| {text} | {cells} | {open_cell} | {val} | {conv} |")
+    return lines
+
+
+def tables(results: Path) -> dict[str, str]:
+    """name -> the markdown README shows between its marks."""
+    run = results / "default"
+    ev, rp = _load(run / RUN_FILES[0]), _load(run / RUN_FILES[1])
+    out = {"default": default_table(ev, rp), "blind": blind_lines(ev, rp),
+           "safety": breakdown_lines({k: v for k, v in rp.get("diagnostics", {}).items() if FIXED not in k},
+                                     rp["per_episode"])}
+    if (run / RUN_FILES[2]).exists():
+        out["closed-loop"] = closed_loop_table(rp, _load(run / RUN_FILES[2]))
+    seeds = results / "seeds" / "seeds.json"
+    if seeds.exists():
+        out["seeds"] = seeds_lines(_load(seeds))
+    return {k: "\n".join(v) for k, v in out.items() if v}
+
+
+def _block(name: str) -> re.Pattern:
+    return re.compile(rf"(<!-- results:{re.escape(name)} -->\n)(.*?)(<!-- /results:{re.escape(name)} -->)", re.S)
+
+
+def apply(readme: str, generated: dict[str, str]) -> tuple[str, list[str]]:
+    """README with every marked table replaced; and the names whose content changed."""
+    changed = []
+    for name, text in generated.items():
+        pat = _block(name)
+        m = pat.search(readme)
+        if m is None:
+            continue  # README does not show this table
+        if m.group(2).rstrip("\n") != text:
+            changed.append(name)
+        readme = readme[:m.start(2)] + text + "\n" + readme[m.end(2):]
+    return readme, changed
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = Parser("python -m adlpipe.results", __doc__)
+    p.add_argument("--results", type=Path, default=Path("results"), help="the committed results (default results/)")
+    p.add_argument("--readme", type=Path, default=Path("README.md"))
+    p.add_argument("--check", action="store_true", help="change nothing; exit 1 naming each table that disagrees")
+    p.add_argument("--save-from", type=Path, metavar="METRICS",
+                   help="first copy a run's details (" + ", ".join(RUN_FILES) + ") into RESULTS/default")
+    p.add_argument("--save-seeds", type=Path, metavar="SEEDS_JSON", help="first copy the seeds summary into "
+                   "RESULTS/seeds/seeds.json")
+    args = p.parse_args(argv)
+    if args.save_from is not None:
+        for name in RUN_FILES:
+            _load(args.save_from / name)  # all readable before any is copied
+        for name in RUN_FILES:
+            with atomic_path(args.results / "default" / name) as tmp:
+                shutil.copyfile(args.save_from / name, tmp)
+    if args.save_seeds is not None:
+        _load(args.save_seeds)
+        with atomic_path(args.results / "seeds" / "seeds.json") as tmp:
+            shutil.copyfile(args.save_seeds, tmp)
+    try:
+        readme = args.readme.read_text()
+    except OSError as exc:
+        raise AdlError(f"{args.readme}: cannot read ({exc.strerror})") from None
+    generated = tables(args.results)
+    missing = [n for n in generated if _block(n).search(readme) is None]
+    new, changed = apply(readme, generated)
+    if args.check:
+        if changed:
+            names = ", ".join(f"'{n}'" for n in changed)
+            raise AdlError(f"{args.readme}: table{'s' if len(changed) > 1 else ''} {names} "
+                           f"differ{'' if len(changed) > 1 else 's'} from {args.results} (python -m adlpipe.results "
+                           "rewrites them)")
+        print(f"{args.readme}: every table agrees with {args.results}")
+        return 0
+    if changed:
+        write_text_atomic(args.readme, new)
+    print(f"{args.readme}: {len(changed)} table(s) rewritten ({', '.join(changed) or 'none changed'})"
+          + (f"; not shown in it: {', '.join(missing)}" if missing else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli("adlpipe.results", main))

@@ -1,0 +1,39 @@
+"""README's result tables are generated from the committed results (results/), and disagree with them never."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from conftest import REPO, one_line_error, run_module
+
+
+def test_readme_tables_agree_with_the_committed_results() -> None:
+    proc = run_module("results", "--check")
+    assert proc.returncode == 0, proc.stderr
+    readme = (REPO / "README.md").read_text()
+    for name in ("default", "closed-loop", "blind", "safety", "seeds"):
+        assert f"<!-- results:{name} -->" in readme, name
+
+
+def test_a_changed_figure_is_caught_and_rewritten(tmp_path: Path) -> None:
+    readme = tmp_path / "README.md"
+    text = (REPO / "README.md").read_text()
+    start = text.index("<!-- results:default -->")
+    row = text.index("| FM-CNN, x1 output, 1 Euler step |", start)
+    cell = text.index("|", row + 3) + 2  # the px cell of FM-1
+    readme.write_text(text[:cell] + "9" + text[cell + 1:])
+    proc = run_module("results", "--check", "--readme", readme, "--results", REPO / "results")
+    assert "table 'default' differs" in one_line_error(proc)
+    run_module("results", "--readme", readme, "--results", REPO / "results", check=True)
+    assert readme.read_text() == text
+
+
+def test_save_from_a_run_missing_a_file_copies_nothing(tmp_path: Path) -> None:
+    run = tmp_path / "metrics"
+    run.mkdir()
+    shutil.copy(REPO / "results" / "default" / "eval_details.json", run)
+    results = tmp_path / "results"
+    proc = run_module("results", "--save-from", run, "--results", results, "--readme", tmp_path / "none.md")
+    assert proc.returncode != 0 and "replay_details.json" in one_line_error(proc)
+    assert not results.exists()
