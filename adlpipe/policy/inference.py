@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 import statistics
 import time
 
@@ -28,6 +29,34 @@ def latency_ms(policy: Policy, obs: Observation, steps: int, method: str, repeat
             synchronize(placement.device)
             times.append((time.perf_counter() - t0) * 1000.0)
     return statistics.median(times)
+
+
+def interleaved_latency_ms(calls: dict[object, tuple[Policy, Observation, int, str]], rounds: int,
+                           placement: Placement | None = None, seed: int = 0) -> dict[object, float]:
+    """Median milliseconds of each call (policy, obs, steps, method), timed in rounds: every round times every
+    call once, in a fresh random order, so a drift of the machine (another job, the clock) falls on every series
+    alike instead of on whichever ran last."""
+    placement = placement or Placement()
+    gen = placement.generator(0)
+    calls = {k: (pol, to_device(obs, placement.device), steps, method)
+             for k, (pol, obs, steps, method) in calls.items()}
+    times: dict[object, list[float]] = {k: [] for k in calls}
+    order = list(calls)
+    rng = random.Random(seed)
+    with placement.autocast():
+        for pol, obs, steps, method in calls.values():
+            for _ in range(3):  # warm-up (and, with --compile, the compilation)
+                pol.predict(obs, steps, method, gen)
+        for _ in range(rounds):
+            rng.shuffle(order)
+            for k in order:
+                pol, obs, steps, method = calls[k]
+                synchronize(placement.device)
+                t0 = time.perf_counter()
+                pol.predict(obs, steps, method, gen)
+                synchronize(placement.device)
+                times[k].append((time.perf_counter() - t0) * 1000.0)
+    return {k: statistics.median(v) for k, v in times.items()}
 
 
 def predict(policy: Policy, obs: Observation, steps: int, method: str | None, gen: torch.Generator,
