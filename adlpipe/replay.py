@@ -62,6 +62,7 @@ from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import predict
 from .runtime import Placement, add_device_args
 from .stats import rate_cell, success_interval
+from .tables import FIXED
 
 
 def _replay_one(job: tuple) -> tuple[str, str, str, bool, dict]:
@@ -108,12 +109,12 @@ def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     spec = spec_from_objects(ep.task, ep.object_names, ep.objects)
     run = replay_closed_loop(spec, plan, ep.duration_s, cfg.rate_hz, execute, cfg.n_obs, ep.rgb.shape[0], camera_hz,
                              anchor="measured" if (target or cfg.target) == "ee" else "command")
-    demo_len = float(np.linalg.norm(np.diff(ep.ee_pos, axis=0), axis=1).sum())
+    demo_len = path_length(ep.ee_pos)
     demo_at_rate = np.stack([np.interp(np.arange(0, ep.duration_s, 1 / cfg.rate_hz), ep.ee_t, ep.ee_pos[:, d])
                              for d in range(3)], 1)
     diag = {"failed": [k for k, ok in run.checks.items() if not ok], "peak_force_n": round(float(run.peak_force_n), 2),
             "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - ep.ee_pos[-1])), 2),
-            "path_ratio": round(float(np.linalg.norm(np.diff(run.tcp_path, axis=0), axis=1).sum()) / demo_len, 3),
+            "path_ratio": round(path_length(run.tcp_path) / demo_len, 3),
             "still_s": round(longest_still(run.command_path, cfg.rate_hz), 2),
             "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2)}
     return label, ep.name, ep.task, run.success, diag
@@ -173,9 +174,6 @@ def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str
                  if bad else "-")
         lines.append(f"| {label} | {len(bad)} of {len(diags)} | {counts} | {err} | {path} | {still} |")
     return "\n".join(lines) + "\n"
-
-
-FIXED = "@fixed-speed"  # the label suffix of a trajectory run at the task's demonstrated speed
 
 
 def path_length(traj3d: np.ndarray) -> float:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import os
 import sys
@@ -299,29 +298,26 @@ def headline_lines(ev: dict, rp: dict) -> list[str]:
 def summary_files(ev: dict, rp: dict, cl: dict) -> dict[str, str]:
     """policy -> the JSON `dvc metrics show` prints as one row: px, cm, ms, success (open loop; closed loop: the best
     Ta's), converged."""
-    out, success = {}, rp.get("success", {})
+    out: dict[str, dict] = {}
+    success = rp.get("success", {})
     if "demo" in success:
-        out["demo"] = json_text({"success": round(success["demo"]["overall"], 4)})
+        out["demo"] = {"success": round(success["demo"]["overall"], 4)}
     for model in ev.get("models", {}):
         r = default_row(ev, model)
         if r is None:
             continue
         ok = success.get(replay_label(model, r))
-        out[model] = json_text({"px": round(r["px"], 3), "cm": round(r["cm"], 3), "ms": round(r["ms"], 2),
-                                "success": None if ok is None else round(ok["overall"], 4),
-                                "converged": ev.get("training", {}).get(model, {}).get("converged")})
+        out[model] = {"px": round(r["px"], 3), "cm": round(r["cm"], 3), "ms": round(r["ms"], 2),
+                      "success": None if ok is None else round(ok["overall"], 4),
+                      "converged": ev.get("training", {}).get(model, {}).get("converged")}
     for label, r in cl.get("success", {}).items():
         model = label.split("/")[0]
         name = f"closed_loop_{model}"
-        if model.startswith("oracle") or (name in out and json_success(out[name]) >= r["overall"]):
-            continue
-        out[name] = json_text({"success": round(r["overall"], 4),
-                               "converged": cl.get("training", {}).get(model, {}).get("converged")})
-    return out
-
-
-def json_success(text: str) -> float:
-    return json.loads(text)["success"]
+        if model.startswith("oracle") or (name in out and out[name]["success"] >= round(r["overall"], 4)):
+            continue  # keep the best Ta's
+        out[name] = {"success": round(r["overall"], 4),
+                     "converged": cl.get("training", {}).get(model, {}).get("converged")}
+    return {name: json_text(row) for name, row in out.items()}
 
 
 def model_styles(models: list[str]) -> dict[str, dict]:
