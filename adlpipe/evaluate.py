@@ -41,7 +41,8 @@ from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import latency_ms, predict
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
 from .runtime import Placement, add_device_args
-from .stats import interval_cell, mean_interval
+from .stats import mean_interval, ratio_interval
+from .tables import error_cell, share_cell
 
 STEPS = [1, 2, 4, 8, 16]
 DEFAULTS = {name: f"{DEFAULT_METHOD[kind]}/{DEFAULT_STEPS[kind]}" for name, (kind, _net) in MODELS.items()}
@@ -81,9 +82,11 @@ def reference_modes(data: Path, test: list[str], workers: int) -> dict[int, torc
 
 def mode_figures(samples: list[torch.Tensor], modes: dict[int, torch.Tensor], tasks: list[str]) -> dict:
     """Commitment of every sample (K per scene) on the scenes with rebuilt modes: overall, to the demonstrated mode
-    (of the committed ones), and per task. samples: K tensors (B, N, 5) unnormalised."""
+    (of the committed ones), and per task. samples: K tensors (B, N, 5) unnormalised. The intervals resample scenes
+    (a scene's K samples share its image, so they are not independent)."""
     if not modes:
-        return {"commitment": None, "to_demonstrated": None, "commitment_per_task": {}}
+        return {"commitment": None, "commitment_ci": None, "to_demonstrated": None, "to_demonstrated_ci": None,
+                "commitment_per_task": {}}
     idx = sorted(modes)
     ref = torch.stack([modes[i] for i in idx])
     committed, to_demo = (torch.stack(v) for v in zip(*(commitment(s[idx, :, 2:], ref) for s in samples),
@@ -92,10 +95,37 @@ def mode_figures(samples: list[torch.Tensor], modes: dict[int, torch.Tensor], ta
     for t in sorted({tasks[i] for i in idx}):
         cols = [k for k, i in enumerate(idx) if tasks[i] == t]
         per_task[t] = float(committed[:, cols].float().mean())
+    per_scene = committed.float().sum(0).numpy()
+    to_demo_per_scene = (committed & to_demo).float().sum(0).numpy()
     n_committed = int(committed.sum())
     return {"commitment": float(committed.float().mean()),
+            "commitment_ci": list(mean_interval((per_scene / len(samples)).tolist())),
             "to_demonstrated": float((committed & to_demo).sum()) / n_committed if n_committed else None,
+            "to_demonstrated_ci": list(ratio_interval(to_demo_per_scene, per_scene)) if n_committed else None,
             "commitment_per_task": per_task}
+
+
+def error_figures(px: torch.Tensor, cm: torch.Tensor, best_px: torch.Tensor, best_cm: torch.Tensor,
+                  tasks: list[str], k: int, image_px: int) -> dict:
+    """A row's error figures from per-episode errors (px, cm: the first sample; best_*: the closest of K samples),
+    every mean with its 95 % bootstrap interval over episodes."""
+    mm = [i for i, t in enumerate(tasks) if t in multimodal_tasks()]
+
+    def mean_ci(v: torch.Tensor) -> tuple[float, list[float]]:
+        return float(v.mean()), list(mean_interval(v.tolist()))
+
+    out = {"n": len(px), "px224": float(px.mean()) * PAPER_IMAGE_PX / image_px,
+           # per test episode, in the split's order: what a paired comparison of two models needs
+           "px_per_episode": [round(float(v), 4) for v in px], "cm_per_episode": [round(float(v), 4) for v in cm],
+           "per_task": {}}
+    for t in sorted(set(tasks)):
+        idx = [i for i, x in enumerate(tasks) if x == t]
+        out["per_task"][t] = {"px": float(px[idx].mean()), "cm": float(cm[idx].mean()), "n": len(idx)}
+    for key, v in (("px", px), ("cm", cm), (f"best_of_{k}_px", best_px), (f"best_of_{k}_cm", best_cm)):
+        out[key], out[f"{key}_ci"] = mean_ci(v)
+    for key, v in (("px_multimodal", px), ("cm_multimodal", cm)):
+        out[key], out[f"{key}_ci"] = mean_ci(v[mm]) if mm else (None, None)
+    return out
 
 
 def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: list[int],
@@ -121,9 +151,6 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
     methods = methods_by_kind.get(policy.family) or [policy.default_method]
     if policy.family == "mse":
         steps_list = [1]
-    by_task = {t: [i for i, tt in enumerate(tasks) if tt == t] for t in sorted(set(tasks))}
-    multimodal = multimodal_tasks()
-    mm = [i for i, t in enumerate(tasks) if t in multimodal]
     rows = {}
     for method in methods:
         for steps in steps_list:
@@ -136,25 +163,15 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
                 samples.append(norm.unnormalize(predict(policy, obs, steps, method, gen, placement)))
                 p2, c2 = waypoint_errors(samples[-1], gt)
                 best_px, best_cm = torch.minimum(best_px, p2), torch.minimum(best_cm, c2)
-            per_task = {t: {"px": float(px[idx].mean()), "cm": float(cm[idx].mean()), "n": len(idx)}
-                        for t, idx in by_task.items()}
             key = f"{method}/{steps}"
             ms = (timings or {}).get(key, {}).get("ms")
             rows[key] = {
                 "model": cfg.model, "method": method, "steps": steps, "epoch": int(ck.get("epoch", 0)),
                 "default": key == DEFAULTS.get(cfg.model),
                 "evaluations": policy.objective.evaluations(steps, method), "image_px": image_px,
-                "input_px": cfg.image_size, "px": float(px.mean()), "px_ci": list(mean_interval(px.tolist())),
-                "px224": float(px.mean()) * PAPER_IMAGE_PX / image_px, "cm": float(cm.mean()),
-                "cm_ci": list(mean_interval(cm.tolist())), "n": len(px),
-                # per test episode, in the split's order: what a paired comparison of two models needs
-                "px_per_episode": [round(float(v), 4) for v in px], "cm_per_episode": [round(float(v), 4) for v in cm],
-                "px_multimodal": float(px[mm].mean()) if mm else None,
-                "cm_multimodal": float(cm[mm].mean()) if mm else None,
-                f"best_of_{k}_px": float(best_px.mean()), f"best_of_{k}_cm": float(best_cm.mean()),
+                "input_px": cfg.image_size, **error_figures(px, cm, best_px, best_cm, tasks, k, image_px),
                 **mode_figures(samples, modes or {}, tasks),
                 "ms": ms if ms is not None else latency_ms(policy, obs[:1], steps, method, repeats, placement),
-                "per_task": per_task,
             }
     return rows
 
@@ -169,18 +186,9 @@ def blind_rows(data: Path, split: dict, image_px: int, k: int) -> dict:
         gt = torch.from_numpy(np.stack([np.concatenate([g["traj2d"][()], g["traj3d"][()]], 1) for g in eps]))
     pred = torch.from_numpy(blind_predictions(task_means(data, split["train"]), tasks))
     px, cm = waypoint_errors(pred, gt.float())
-    mm = [i for i, t in enumerate(tasks) if t in multimodal_tasks()]
     row = {"model": BLIND, "method": "task_mean", "steps": 1, "epoch": 0, "default": True, "evaluations": 0,
-           "image_px": image_px, "input_px": 0, "px": float(px.mean()), "px_ci": list(mean_interval(px.tolist())),
-           "px224": float(px.mean()) * PAPER_IMAGE_PX / image_px, "cm": float(cm.mean()),
-           "cm_ci": list(mean_interval(cm.tolist())), "n": len(px),
-           "px_per_episode": [round(float(v), 4) for v in px], "cm_per_episode": [round(float(v), 4) for v in cm],
-           "px_multimodal": float(px[mm].mean()) if mm else None, "cm_multimodal": float(cm[mm].mean()) if mm else None,
-           f"best_of_{k}_px": float(px.mean()), f"best_of_{k}_cm": float(cm.mean()),
-           "commitment": None, "to_demonstrated": None, "commitment_per_task": {}, "ms": 0.0,
-           "per_task": {t: {"px": float(px[[i for i, x in enumerate(tasks) if x == t]].mean()),
-                            "cm": float(cm[[i for i, x in enumerate(tasks) if x == t]].mean()),
-                            "n": tasks.count(t)} for t in sorted(set(tasks))}}
+           "image_px": image_px, "input_px": 0, **error_figures(px, cm, px, cm, tasks, k, image_px),
+           **mode_figures([], {}, tasks), "ms": 0.0}
     return {"task_mean/1": row}
 
 
@@ -194,8 +202,8 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
              f"final one. {BLIND}: the blind baseline, each test episode's task mean training trajectory (it ignores "
              "the image): the floor a model's learning is measured against.", "",
              f"| method | checkpoint (epoch) | converged | sampler | steps | px [95 %] | px224 | cm [95 %] | ms | "
-             f"best-of-{k} px | "
-             "px (multimodal tasks) | mode commitment |",
+             f"best-of-{k} px [95 %] | "
+             "px (multimodal tasks) [95 %] | mode commitment [95 %] |",
              "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for model, by_ck in results.items():
         conv = {True: "yes", False: "**no**", None: "?"}[training.get(model, {}).get("converged")]
@@ -205,16 +213,11 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
             if model == BLIND and ck == "last":
                 continue  # one set of task means: no checkpoints
             for r in rows.values():
-                mm = f"{r['px_multimodal']:.2f}" if r["px_multimodal"] is not None else "-"
-                com = f"{r['commitment']:.0%}" if r.get("commitment") is not None else "-"
+                mm = error_cell(r, "px_multimodal") if r["px_multimodal"] is not None else "-"
                 lines.append(f"| {model} | {ck} ({r['epoch']}) | {conv} | {r['method']} | {r['steps']} | "
-                             f"{_ci(r, 'px')} | {r['px224']:.2f} | {_ci(r, 'cm')} | {r['ms']:.1f} | "
-                             f"{r[f'best_of_{k}_px']:.2f} | {mm} | {com} |")
+                             f"{error_cell(r, 'px')} | {r['px224']:.2f} | {error_cell(r, 'cm')} | {r['ms']:.1f} | "
+                             f"{error_cell(r, f'best_of_{k}_px')} | {mm} | {share_cell(r, 'commitment')} |")
     return "\n".join(lines) + "\n"
-
-
-def _ci(r: dict, key: str) -> str:
-    return interval_cell(r[key], r.get(f"{key}_ci") or (float("nan"), float("nan")), 2)
 
 
 def headline(results: dict[str, dict], training: dict[str, dict], n_test: int) -> dict:

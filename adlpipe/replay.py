@@ -213,7 +213,8 @@ def training_summary(models: list[Path]) -> dict[str, dict]:
             m = json.loads((d / "metrics.json").read_text())
         except (OSError, ValueError):
             continue  # a model folder without metrics: nothing to say about its convergence
-        out[d.name] = {k: m.get(k) for k in ("converged", "val_px_best", "optimizer_steps", "epochs")}
+        out[d.name] = {k: m.get(k) for k in ("converged", "val_px_best", "val_px_best_ci", "optimizer_steps",
+                                            "epochs")}
     return out
 
 

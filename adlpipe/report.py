@@ -30,8 +30,8 @@ from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, read_json_object, run_cli
 from .outcomes import breakdown_lines
 from .policy.blind import BLIND
-from .stats import interval_cell, paired_difference, paired_success, rate_cell
-from .tables import FIXED, blind_lines, default_row, rate_of, replay_label
+from .stats import paired_difference, paired_success, rate_cell
+from .tables import FIXED, blind_lines, default_row, error_cell, rate_of, replay_label, share_cell
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
 AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px
@@ -221,7 +221,7 @@ def mode_lines(ev: dict, rp: dict) -> list[str]:
     default step count and at 16 steps."""
     tasks = rp.get("tasks", {})
     head = " | ".join(AVERAGING_FAILS)
-    lines = [f"| policy | steps | px | ms | mode commitment | to the demonstrated mode | {head} |",
+    lines = [f"| policy | steps | px [95 %] | ms | mode commitment [95 %] | to the demonstrated mode [95 %] | {head} |",
              "| --- | ---: | ---: | ---: | ---: | ---: |" + " ---: |" * len(AVERAGING_FAILS)]
     for model, by_ck in ev.get("models", {}).items():
         best = by_ck.get("best", {})
@@ -235,10 +235,10 @@ def mode_lines(ev: dict, rp: dict) -> list[str]:
             cells = []
             for t in AVERAGING_FAILS:
                 got = [ok for n, ok in per.items() if tasks.get(n) == t]
-                cells.append(f"{100 * sum(got) / len(got):.0f} ({len(got)})" if got else "-")
-            demo = "-" if r.get("to_demonstrated") is None else f"{r['to_demonstrated']:.0%}"
-            lines.append(f"| {model} | {r['steps']} | {r['px']:.2f} | {r['ms']:.1f} | {r['commitment']:.0%} | "
-                         f"{demo} | " + " | ".join(cells) + " |")
+                cells.append(f"{rate_cell(sum(got), len(got))} ({len(got)})" if got else "-")
+            lines.append(f"| {model} | {r['steps']} | {error_cell(r, 'px')} | {r['ms']:.1f} | "
+                         f"{share_cell(r, 'commitment')} | {share_cell(r, 'to_demonstrated')} | "
+                         + " | ".join(cells) + " |")
     if len(lines) == 2:
         return []
     return lines + ["", f"Over {ev.get('mode_scenes', '?')} test scenes of two-mode tasks, {ev.get('best_of', '?')} "
@@ -248,7 +248,7 @@ def mode_lines(ev: dict, rp: dict) -> list[str]:
 
 
 def convergence_lines(ev: dict) -> list[str]:
-    lines = ["| model | optimiser steps | val px best (epoch) | val px last | converged |",
+    lines = ["| model | optimiser steps | val px best [95 %] (epoch) | val px last [95 %] | converged |",
              "| --- | ---: | ---: | ---: | --- |"]
     for model, t in ev.get("training", {}).items():
         if t.get("val_px_best") is None:
@@ -256,8 +256,8 @@ def convergence_lines(ev: dict) -> list[str]:
         state = "yes" if t.get("converged") else "**no**"
         if t.get("converged") and _undertrained(ev, model):
             state = f"flat, but **undertrained** (16-step px over {UNDERTRAINED_RATIO:.0f}x BC-CNN's)"
-        lines.append(f"| {model} | {t.get('optimizer_steps', '?')} | {t['val_px_best']:.2f} ({t.get('best_epoch')}) | "
-                     f"{t['val_px_last']:.2f} | {state} |")
+        lines.append(f"| {model} | {t.get('optimizer_steps', '?')} | {error_cell(t, 'val_px_best')} "
+                     f"({t.get('best_epoch')}) | {error_cell(t, 'val_px_last')} | {state} |")
     return lines
 
 
@@ -289,8 +289,8 @@ def headline_lines(ev: dict, rp: dict) -> list[str]:
         conv = {True: "yes", False: "**no**", None: "?"}[ev.get("training", {}).get(model, {}).get("converged")]
         label = replay_label(model, r)
         ok, fixed = success.get(label), success.get(label + FIXED)
-        cells = [interval_cell(r[k], r[k + "_ci"], 2) if r.get(k + "_ci") else f"{r[k]:.2f}" for k in ("px", "cm")]
-        lines.append(f"| {model} | {r['method']} | {r['steps']} | {cells[0]} | {cells[1]} | {r['ms']:.1f} | "
+        lines.append(f"| {model} | {r['method']} | {r['steps']} | {error_cell(r, 'px')} | {error_cell(r, 'cm')} | "
+                     f"{r['ms']:.1f} | "
                      f"{'- (not trained)' if model == BLIND else conv} | {rate_of(ok)} | {rate_of(fixed)} |")
     return lines
 

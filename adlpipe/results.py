@@ -22,8 +22,8 @@ from .atomic import atomic_path, write_text_atomic
 from .cli import Parser
 from .errors import AdlError, read_json_object, run_cli
 from .outcomes import breakdown_lines
-from .stats import interval_cell, rate_cell
-from .tables import FIXED, blind_lines, rate_of, seeds_lines
+from .stats import rate_cell
+from .tables import FIXED, blind_lines, error_cell, rate_of, seeds_lines
 
 RUN_FILES = ("eval_details.json", "replay_details.json", "replay_closed_loop_details.json")
 
@@ -48,14 +48,10 @@ def _load(path: Path) -> dict:
     return read_json_object(path, "the committed results")
 
 
-def _cell(r: dict, key: str) -> str:
-    return interval_cell(r[key], r[f"{key}_ci"], 2) if r.get(f"{key}_ci") else f"{r[key]:.2f}"
-
-
 def default_table(ev: dict, rp: dict) -> list[str]:
     n = ev["n_test"]
     lines = ["| policy | px [95 %] | px224 | cm [95 %] | ms | replay success % [95 %] | at a fixed speed | "
-             "val px best | converged |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+             "val px best [95 %] | converged |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
     success = rp["success"]
     for text, model, key, label in DEFAULT_ROWS:
         rows = ev["models"].get(model, {}).get("best", {}) if model else {}
@@ -66,9 +62,9 @@ def default_table(ev: dict, rp: dict) -> list[str]:
             text = f"{text}: {r['method']} {r['steps']} steps"
         t = ev.get("training", {}).get(model, {})
         conv = {True: "yes", False: "no", None: "-"}[t.get("converged")]
-        val = f"{t['val_px_best']:.2f}" if t.get("val_px_best") is not None else ""
+        val = error_cell(t, "val_px_best") if t.get("val_px_best") is not None else ""
         first = key in (None, "task_mean/1") or r.get("default")  # validation and convergence: once per model
-        px = f"{_cell(r, 'px')} | {r['px224']:.2f} | {_cell(r, 'cm')} | {r['ms']:.1f}" if r else " | | | "
+        px = f"{error_cell(r, 'px')} | {r['px224']:.2f} | {error_cell(r, 'cm')} | {r['ms']:.1f}" if r else " | | | "
         lines.append(f"| {text} | {px} | {rate_of(success.get(label)) if label else ''} | "
                      f"{rate_of(success.get(label + FIXED)) if label else ''} | {val if first else ''} | "
                      f"{conv if first and model else ''} |")
@@ -87,7 +83,7 @@ def closed_loop_table(rp: dict, cl: dict) -> list[str]:
     tas = sorted({ta for v in by.values() for ta in v})
     names = sorted({n for per in cl["per_episode"].values() for n in per})
     lines = [f"| policy | success % at Ta = {' / '.join(map(str, tas))} (n = {len(names)}) | open loop on these "
-             "scenes | val px | converged |", "| --- | ---: | ---: | ---: | --- |"]
+             "scenes | val px [95 %] | converged |", "| --- | ---: | ---: | ---: | --- |"]
     for head, per_ta in by.items():
         model = head.split("/")[0]
         cells = " / ".join(f"{100 * per_ta[ta]['overall']:.0f}" if ta in per_ta else "-" for ta in tas)
@@ -96,7 +92,7 @@ def closed_loop_table(rp: dict, cl: dict) -> list[str]:
         open_cell = (f"{OPEN_LOOP_OF[model]}: {rate_cell(sum(got), len(got))}" if len(got) == len(names) and got
                      else "")
         t = cl.get("training", {}).get(model, {})
-        val = f"{t['val_px_best']:.2f}" if t.get("val_px_best") is not None else ""
+        val = error_cell(t, "val_px_best") if t.get("val_px_best") is not None else ""
         conv = {True: "yes", False: "no", None: ""}[t.get("converged")]
         text = (f"{head}: the demonstrations' own plans in the policy's format (the executor's ceiling)"
                 if model.startswith("oracle") else f"closed-loop {head}")

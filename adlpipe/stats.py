@@ -68,6 +68,24 @@ def mean_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float,
     return float(ci.low), float(ci.high)
 
 
+def ratio_interval(numerators: Sequence[float], denominators: Sequence[float],
+                   level: float = LEVEL) -> tuple[float, float]:
+    """The percentile bootstrap interval of sum(numerators) / sum(denominators), resampling their pairs (clusters:
+    e.g. a scene's samples that went one way out of those that committed at all)."""
+    num, den = np.asarray(numerators, float), np.asarray(denominators, float)
+    ratio = float(num.sum() / den.sum())
+    if len(num) < 2 or np.ptp(num / np.where(den > 0, den, 1)) == 0:
+        return ratio, ratio
+
+    def statistic(a: np.ndarray, b: np.ndarray, axis: int = -1) -> np.ndarray:
+        d = b.sum(axis)
+        return np.where(d > 0, a.sum(axis) / np.where(d > 0, d, 1), np.nan)
+
+    ci = bootstrap((num, den), statistic, paired=True, confidence_level=level, n_resamples=RESAMPLES,
+                   method="percentile", rng=np.random.default_rng(0)).confidence_interval
+    return float(ci.low), float(ci.high)
+
+
 def interval_cell(value: float, interval: Sequence[float], digits: int = 3) -> str:
     """'0.912 [0.897, 0.925]': a figure and its interval, as every table prints them."""
     lo, hi = interval

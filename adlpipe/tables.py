@@ -4,9 +4,24 @@
 from __future__ import annotations
 
 from .policy.blind import BLIND
-from .stats import paired_difference, paired_success, rate_cell
+from .stats import interval_cell, paired_difference, paired_success, rate_cell
 
 FIXED = "@fixed-speed"  # replay's label suffix for a trajectory run at the task's demonstrated speed
+
+
+def error_cell(r: dict, key: str) -> str:
+    """'2.23 [2.05, 2.41]': an error and its 95 % interval; a row evaluated before the figure had an interval prints
+    the figure alone."""
+    ci = r.get(f"{key}_ci")
+    return interval_cell(r[key], ci, 2) if ci else f"{r[key]:.2f}"
+
+
+def share_cell(r: dict, key: str) -> str:
+    """'64 % [55, 72]': a share with its 95 % interval; '-' where it was not measured."""
+    if r.get(key) is None:
+        return "-"
+    ci = r.get(f"{key}_ci")
+    return f"{r[key]:.0%} [{100 * ci[0]:.0f}, {100 * ci[1]:.0f}]" if ci else f"{r[key]:.0%}"
 
 
 def rate_of(r: dict | None) -> str:

@@ -41,6 +41,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset
@@ -81,6 +82,7 @@ from .runtime import (
     resolve_device,
     to_device,
 )
+from .stats import mean_interval
 
 LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "val_px", "lr", "seconds"]
 CONVERGENCE_TOLERANCE = 0.02  # best val px may fall by at most 2 % over the last fifth of training
@@ -112,13 +114,14 @@ def val_dims(cfg: ModelConfig) -> int:
 
 
 def validation_px(policy: Policy, obs: Observation, target_px: torch.Tensor, norm: Normalizer, seed: int,
-                  precision: str = "fp32") -> float:
-    """Mean per-waypoint error (L2, the target's units: pixels, or the action's) of the default sampler on the
-    validation episodes (same noise every time)."""
+                  precision: str = "fp32") -> list[float]:
+    """Per validation episode, the mean per-waypoint error (L2, the target's units: pixels, or the action's) of the
+    default sampler (same noise every time); their mean is the val px that selects checkpoints."""
     device = target_px.device
     with autocast(device, precision):
         pred = policy.predict(obs, policy.default_steps, None, generator(device, seed))
-    return float((norm.unnormalize(pred)[..., :target_px.shape[-1]] - target_px).norm(dim=-1).mean())
+    err = (norm.unnormalize(pred)[..., :target_px.shape[-1]] - target_px).norm(dim=-1)
+    return err.flatten(1).mean(1).tolist()
 
 
 def converged(history: list[dict], tolerance: float = CONVERGENCE_TOLERANCE) -> bool:
@@ -309,14 +312,15 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             n += len(act)
         total, n = all_sum([total, n], device, ranks)
         if ranks.main:
-            val_px, test_loss = None, None
+            val_px, val_ci, test_loss = None, None, None
             if (epoch + 1) % val_every == 0 or epoch + 1 == epochs:  # with validation: the test loss is for the
                 # curves, and every epoch it cost a tenth of the training time
                 test_loss = evaluate_loss(ema.model, test_loader, device, precision)
                 if val_obs is not None:
-                    val_px = validation_px(ema.model, val_obs, val_px_target, norm, seed, precision)
+                    per_episode = validation_px(ema.model, val_obs, val_px_target, norm, seed, precision)
+                    val_px, val_ci = float(np.mean(per_episode)), list(mean_interval(per_episode))
             row = {"epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "train_loss": total / n,
-                   "test_loss": test_loss, "val_px": val_px, "lr": sched.get_last_lr()[0],
+                   "test_loss": test_loss, "val_px": val_px, "val_px_ci": val_ci, "lr": sched.get_last_lr()[0],
                    "seconds": time.time() - t0}
             history.append(row)
             bar.set_postfix(train=f"{row['train_loss']:.4f}")
@@ -339,7 +343,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         save_atomic(inference_checkpoint(epochs), out / "best.pt")
     if log_csv is not None:
         with atomic_path(log_csv) as tmp, open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, LOG_FIELDS)
+            w = csv.DictWriter(f, LOG_FIELDS, extrasaction="ignore")  # the log keeps plain columns
             w.writeheader()
             w.writerows(history)
     vals = [r for r in history if r.get("val_px") is not None]
@@ -348,6 +352,8 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
              "train_episodes": len(train_names), "val_episodes": len(val_names),
              "train_loss": history[-1]["train_loss"], "test_loss": history[-1]["test_loss"],
              "val_px_last": vals[-1]["val_px"] if vals else None, "val_px_best": best["val_px"] if best else None,
+             "val_px_last_ci": vals[-1].get("val_px_ci") if vals else None,
+             "val_px_best_ci": best.get("val_px_ci") if best else None,
              "best_epoch": best["epoch"] if best else epochs, "converged": converged(history),
              "val_history": [[r["epoch"], r["val_px"]] for r in vals], "processes": ranks.world,
              "device": device.type, "precision": precision,

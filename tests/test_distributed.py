@@ -93,6 +93,20 @@ def test_a_run_resumes_on_another_number_of_processes_where_it_stopped(four: tup
     assert resumed["history"][-1]["train_loss"] == pytest.approx(full["train_loss"], rel=REL_TOL)
 
 
+def test_validation_px_carries_its_interval_over_validation_episodes(four: tuple[Path, Path],
+                                                                     tmp_path: Path) -> None:
+    """The val px that selects checkpoints is a mean over a handful of episodes: training keeps its bootstrap
+    interval at the best and the last validation, and the training log keeps its plain columns."""
+    data, split = four
+    m = train(data, split, tmp_path / "m", ModelConfig(model="fm_cnn", **TINY), epochs=2, batch_size=2,
+              val_fraction=0.5, val_every=1, log_csv=tmp_path / "log.csv")
+    assert m["val_episodes"] == 2
+    for key in ("val_px_best", "val_px_last"):
+        lo, hi = m[f"{key}_ci"]
+        assert lo <= m[key] <= hi and lo < hi, key  # two episodes never score the same to the last digit
+    assert (tmp_path / "log.csv").read_text().splitlines()[0] == "epoch,step,train_loss,test_loss,val_px,lr,seconds"
+
+
 def test_loader_workers_change_nothing_but_speed(four: tuple[Path, Path], tmp_path: Path) -> None:
     """One persistent DataLoader with 2 worker processes yields the same batches (windows, augmentation, noise)
     as loading in the training process: the epoch travels with each index."""

@@ -76,6 +76,10 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert row["n"] == 10 and len(row["px_per_episode"]) == 10
     assert np.mean(row["px_per_episode"]) == pytest.approx(row["px"], abs=1e-3)
     assert row["px_ci"][0] < row["px"] < row["px_ci"][1] and row["cm_ci"][0] < row["cm"] < row["cm_ci"][1]
+    # and best-of-K, the multimodal tasks' error and mode commitment (resampling scenes) too
+    for key in ("best_of_2_px", "px_multimodal", "commitment"):
+        assert row[f"{key}_ci"][0] <= row[key] <= row[f"{key}_ci"][1], key
+    assert row["best_of_2_px"] <= row["px"]
     for dp in ("dp_cnn", "dp_cnn_epsilon"):
         assert sorted(ev["models"][dp]["last"]) == ["ddim/1", "ddim/16", "ddpm/1", "ddpm/16", "ddpm_trailing/1",
                                                     "ddpm_trailing/16"]
@@ -93,6 +97,7 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert "FM-1 about as accurate as DP-16 (within 10% or better; clean-trajectory output for both)" in report
     assert "FM-1 about as accurate as DP-16 (within 10% or better; the paper's pair: velocity vs noise" in report
     assert "## Mode commitment" in report and "| fm_cnn | 16 |" in report
+    assert "| model | optimiser steps | val px best [95 %] (epoch) |" in report
     assert "## Closed loop vs open loop" in report and "| closed loop: fm_cnn/euler-1/Ta-8 |" in report
     assert "| closed loop: oracle-command/Ta-8 (the demonstration's own plans" in report
     assert "- fm_cnn: closed loop " in report and "open loop. Best closed loop fm_cnn/euler-1/Ta-" in report

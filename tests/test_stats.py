@@ -44,6 +44,23 @@ def test_bootstrap_interval_of_a_mean() -> None:
     assert mean_cell([0.0, 1.0] * 50) == "0.500 [0.400, 0.600]"
 
 
+def test_ratio_interval_resamples_clusters() -> None:
+    """A share over clustered samples (K samples per scene) gets an interval over scenes: all-or-nothing scenes
+    carry far less information than their sample count, so the interval is wider than a binomial one over samples,
+    and it collapses when every scene has the same share."""
+    import numpy as np
+
+    from adlpipe.stats import ratio_interval
+
+    den = np.full(40, 8.0)  # 40 scenes, 8 committed samples each
+    num = np.where(np.arange(40) < 20, 8.0, 0.0)  # half the scenes all to the demonstrated mode, half none
+    lo, hi = ratio_interval(num, den)
+    assert lo < 0.5 < hi
+    wilson = success_interval(160, 320)
+    assert hi - lo > 2 * (wilson[1] - wilson[0])
+    assert ratio_interval(np.full(5, 2.0), np.full(5, 4.0)) == (0.5, 0.5)
+
+
 def test_report_figures_tell_every_series_apart_and_label_the_steps() -> None:
     """X.5: no two models share a colour (BC-CNN and BC-Transformer were the same blue dotted line), and the log
     step axis is labelled with the step counts."""
