@@ -4,7 +4,7 @@
 
 Records episodes with the MuJoCo recorder (or uses --bags), then times (a) iterating every record of each bag with
 the mcap reader (no decoding) and (b) a full single-process ingest, each in a fresh process whose peak RSS is read
-back. Ingest keeps only the first frame's images, so its RSS should stay flat as bags grow.
+back (VmHWM, bench/peak.py). Ingest keeps only the first frame's images, so its RSS should stay flat as bags grow.
 """
 
 from __future__ import annotations
@@ -17,31 +17,37 @@ import tempfile
 import time
 from pathlib import Path
 
+REPO = Path(__file__).resolve().parents[1]
 RAW = """
-import resource, sys, time
+import sys, time
+sys.path.insert(0, "bench")
+from peak import own_peak_mb
 from mcap.reader import make_reader
 t = time.perf_counter(); n = 0
 for p in sys.argv[1:]:
     with open(p, "rb") as f:
         for _ in make_reader(f).iter_messages():
             n += 1
-print(time.perf_counter() - t, n, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+print(time.perf_counter() - t, n, own_peak_mb())
 """
 INGEST = """
-import resource, sys, time
+import sys, time
+sys.path.insert(0, "bench")
+from peak import own_peak_mb
 from pathlib import Path
 from adlpipe.ingest import ingest
 from adlpipe.bags.topics import TopicMap
 t = time.perf_counter()
 ingest([Path(p) for p in sys.argv[2:]], Path(sys.argv[1]), TopicMap(), 32, 224, workers=1)
-print(time.perf_counter() - t, 0, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+print(time.perf_counter() - t, 0, own_peak_mb())
 """
 
 
 def run(code: str, *args: str) -> tuple[float, float]:
-    out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, check=True).stdout
-    secs, _n, rss_kb = out.split()
-    return float(secs), float(rss_kb) / 1024
+    out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, check=True,
+                         cwd=REPO).stdout
+    secs, _n, rss_mb = out.split()
+    return float(secs), float(rss_mb)
 
 
 def main() -> None:

@@ -33,19 +33,22 @@ sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "bench")]
 from ingest_scale import run, size_mb  # noqa: E402 - the fresh-process runner and folder size of the ingest bench
 
 INGEST = """
-import json, resource, sys, time
+import json, sys, time
+sys.path.insert(0, "bench")
+from peak import WorkerPeak, own_peak_mb
 from pathlib import Path
 from adlpipe.ingest import main
 out, cfg, workers, listing = sys.argv[1:]
 bags = Path(listing).read_text().split()
 t = time.perf_counter()
-rc = main([*bags, "-o", out, "--config", cfg, "--size", "64", "--workers", workers])
-print(json.dumps({"rc": rc, "s": time.perf_counter() - t,
-                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "child_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}))
+with WorkerPeak() as workers_peak:
+    rc = main([*bags, "-o", out, "--config", cfg, "--size", "64", "--workers", workers])
+print(json.dumps({"rc": rc, "s": time.perf_counter() - t, "rss_mb": own_peak_mb(), "child_rss_mb": workers_peak.mb}))
 """
 EPOCH = """
-import json, resource, sys, time
+import json, sys, time
+sys.path.insert(0, "bench")
+from peak import WorkerPeak, own_peak_mb
 from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
@@ -67,13 +70,12 @@ loader = DataLoader(TrainingSamples(ds, 0), batch_size=64, sampler=sampler, num_
                     persistent_workers=workers > 0)
 t = time.perf_counter()
 n = 0
-for obs, act, eps, u in loader:
-    n += len(act)
+with WorkerPeak() as workers_peak:
+    for obs, act, eps, u in loader:
+        n += len(act)
 epoch_s = time.perf_counter() - t
 print(json.dumps({"episodes": n, "stats_s": stats_s, "epoch_s": epoch_s, "cached": ds.cache,
-                  "shape": list(obs.shape[1:]),
-                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "child_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}))
+                  "shape": list(obs.shape[1:]), "rss_mb": own_peak_mb(), "child_rss_mb": workers_peak.mb}))
 """
 
 

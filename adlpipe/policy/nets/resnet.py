@@ -21,8 +21,12 @@ class BasicBlock(nn.Module):
                      if stride != 1 or cin != cout else nn.Identity())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = torch.relu(self.n1(self.conv1(x)))
-        return torch.relu(self.n2(self.conv2(y)) + self.skip(x))
+        # in place where autograd allows it (GroupNorm's backward needs its input, not its output): the same
+        # values with two fewer activation tensors per block, measured 6-7 % faster on the paper encoder
+        y = self.n1(self.conv1(x)).relu_()
+        out = self.n2(self.conv2(y))
+        out += self.skip(x)
+        return out.relu_()
 
 
 class ResNet18GN(nn.Module):
@@ -31,7 +35,7 @@ class ResNet18GN(nn.Module):
 
     def __init__(self, in_channels: int, out_dim: int, width: int = 64) -> None:
         super().__init__()
-        self.stem = nn.Sequential(nn.Conv2d(in_channels, width, 7, 2, 3, bias=False), _norm(width), nn.ReLU(),
+        self.stem = nn.Sequential(nn.Conv2d(in_channels, width, 7, 2, 3, bias=False), _norm(width), nn.ReLU(inplace=True),
                                   nn.MaxPool2d(3, 2, 1))
         layers, cin = [], width
         for i, cout in enumerate([width, 2 * width, 4 * width, 8 * width]):
