@@ -483,6 +483,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.gather:
         with exclusive(args.output):
             g = shards.gather(args.output)
+        for name in g["unfinished"]:
+            print(f"note: {shards.shards_dir(args.output) / name}: a share still being written (or written on "
+                  "another machine); left alone: gather again when it has finished, or remove it if it was "
+                  "stopped", file=sys.stderr)
         print(f"{args.output}: {g['new']} episode(s) linked from {g['shares']} share(s), {g['episodes']} in all")
         return 0
     tm = TopicMap.load(args.config)

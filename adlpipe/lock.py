@@ -54,3 +54,24 @@ def _acquire(path: Path, output: Path) -> int:
             return fd
         os.close(fd)  # the holder removed the file as we locked it: lock the new one
     raise AdlError(f"{output}: cannot take its write lock {path}")
+
+
+def remove_if_unlocked(path: Path) -> bool:
+    """Remove a lock file nobody holds (its process was killed: the lock went with it, the file stayed)."""
+    try:
+        fd = os.open(path, os.O_RDWR)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return False
+    try:
+        if os.fstat(fd).st_ino == os.stat(path).st_ino:
+            path.unlink()  # while locked, as the holder does: a writer that locked it meanwhile retries
+        return True
+    except FileNotFoundError:
+        return False
+    finally:
+        os.close(fd)

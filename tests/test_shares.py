@@ -88,3 +88,58 @@ def test_the_dask_example_ingests_on_two_local_workers(six_bags: list[Path], tmp
     folders = [d.name for d in shards.shards_dir(out).iterdir()]
     assert sorted(n[:18] for n in folders) == [f"share-000{i}-of-0004" for i in range(1, 5)]
     assert json.loads((shards.shards_dir(out) / sorted(folders)[0] / "catalog.json").read_text())["image_size"] == 64
+
+
+def test_an_index_whose_catalog_and_links_disagree_loses_nothing(six_bags: list[Path], tmp_path: Path) -> None:
+    """Two runs; the index's catalog is rewritten to name the first run's files for the second run's episodes too
+    (the links still point into the second run). An append must not decide which is right by deleting a folder:
+    one line, nothing changed."""
+    from conftest import one_line_error, run_module
+
+    out = tmp_path / "adl.h5"
+    run_module("ingest", *six_bags[:2], "-o", out, "--size", "64", check=True)
+    run_module("ingest", *six_bags[2:4], "-o", out, "--size", "64", check=True)
+    runs = sorted(d.name for d in shards.shards_dir(out).iterdir())
+    assert len(runs) == 2
+    with h5py.File(out, "a") as f:
+        files = f[schema.CATALOG]["file"]
+        files[...] = [v.decode().replace(runs[1], runs[0]) for v in files[()]]
+    before = out.read_bytes()
+    line = one_line_error(run_module("ingest", *six_bags[4:], "-o", out, "--size", "64"))
+    assert "the catalog names" in line and "but the index links" in line and "nothing was changed" in line, line
+    assert sorted(d.name for d in shards.shards_dir(out).iterdir()) == runs and out.read_bytes() == before
+    assert all(len(list((shards.shards_dir(out) / r).glob("*.h5"))) == 2 for r in runs)
+
+
+def test_gather_leaves_a_share_that_is_still_being_written(six_bags: list[Path], tmp_path: Path) -> None:
+    """--gather links the finished shares and leaves the hidden folder of a share whose process still runs (a
+    live process of this machine, by the pid in the folder's name) and of a share of another machine; a killed
+    share's folder and its stale lock file are removed."""
+    import socket
+
+    from conftest import run_module
+
+    out = tmp_path / "adl.h5"
+    run_module("ingest", *six_bags[:3], "-o", out, "--size", "64", "--shard", "1/2", check=True)
+    host = "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:40]
+    live = subprocess.Popen(["sleep", "60"])
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    root = shards.shards_dir(out)
+    folders = {"live": root / f".share-0002-of-0002-20261201-000000-{host}-{live.pid}.tmp",
+               "dead": root / f".share-0002-of-0002-20261201-000001-{host}-{dead.pid}.tmp",
+               "elsewhere": root / f".share-0002-of-0002-20261201-000002-otherhost-{dead.pid}.tmp"}
+    for d in folders.values():
+        d.mkdir()
+        (d / "000000.h5").write_bytes(b"work in progress")
+    stale = out.with_name(f".{out.name}.share-2-of-2.lock")
+    stale.write_text("12345")
+    try:
+        proc = run_module("ingest", "--gather", "-o", out, check=True)
+    finally:
+        live.kill()
+    assert "2 episode(s) linked from 1 share(s)" in proc.stdout  # share 1 of 2: two of the three bags
+    assert folders["live"].is_dir() and folders["elsewhere"].is_dir() and not folders["dead"].exists()
+    assert (folders["live"] / "000000.h5").read_bytes() == b"work in progress"
+    assert proc.stderr.count("a share still being written") == 2
+    assert not stale.exists()

@@ -26,6 +26,7 @@ import h5py
 
 from ..atomic import atomic_path
 from ..errors import AdlError
+from ..lock import remove_if_unlocked
 from . import schema
 
 shards_dir = schema.shards_root  # adl.h5 -> adl.shards beside it
@@ -83,8 +84,10 @@ def gather(index: Path) -> dict[str, int]:
             schema.check_file(f, str(index))
             old = schema.read_catalog(f)
             attrs = (int(f.attrs["n_waypoints"]), int(f.attrs["image_size"]))
+            named = referenced_folders(index, f)
+    else:
+        named = set()
     known = {r["key"] for r in old}
-    named = {Path(r["file"]).parts[1] for r in old if len(Path(r["file"]).parts) > 2}
     new: list[dict[str, str]] = []
     unused: list[Path] = []
     for d in folders:
@@ -110,9 +113,23 @@ def gather(index: Path) -> dict[str, int]:
         write_index(index, old + new, *attrs)
     for d in unused:
         shutil.rmtree(d, ignore_errors=True)
-    for d in root.glob(".share-*.tmp") if root.is_dir() else []:
-        shutil.rmtree(d, ignore_errors=True)
-    return {"shares": len(folders), "new": len(new), "episodes": len(old) + len(new)}
+    unfinished = []
+    for d in sorted(root.glob(".share-*.tmp")) if root.is_dir() else []:
+        if _writer_gone(d.name[1:-4]):
+            shutil.rmtree(d, ignore_errors=True)  # a killed share's leftovers
+        else:
+            unfinished.append(d.name)  # still being written, or on a machine whose processes we cannot see
+    for lock in index.parent.glob(f".{index.name}.share-*.lock"):
+        remove_if_unlocked(lock)  # a killed share's lock file (its lock went with its process)
+    return {"shares": len(folders), "new": len(new), "episodes": len(old) + len(new), "unfinished": unfinished}
+
+
+def _writer_gone(run: str) -> bool:
+    """Whether the process writing a share's hidden folder has ended: its name ends in -<host>-<pid>; a share of
+    another machine is never taken for gone."""
+    head, _, pid = run.rpartition("-")
+    host = "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:40]
+    return pid.isdigit() and head.endswith(f"-{host}") and not _alive(int(pid))
 
 
 def _share_rows(d: Path, cat: dict) -> list[dict[str, str]]:
@@ -143,6 +160,25 @@ def write_index(index: Path, rows: list[dict[str, str]], n_waypoints: int, image
             f[schema.EPISODES][r["name"]] = h5py.ExternalLink(r["file"], f"/{schema.EPISODES}/{r['name']}")
 
 
+def referenced_folders(index: Path, f: h5py.File) -> set[str]:
+    """The run and share folders an index references. Its catalog and its episode links must name the same file
+    for every episode: where they disagree, nothing may be cleaned up (either could be the truth), so it is one
+    line and nothing changes."""
+    links = f[schema.EPISODES] if schema.EPISODES in f else {}
+    folders = set()
+    for r in schema.read_catalog(f):
+        link = links.get(r["name"], getlink=True) if r["name"] in links else None
+        target = link.filename if isinstance(link, h5py.ExternalLink) else None
+        if target != r["file"]:
+            raise AdlError(f"{index}: episode {r['name']}: the catalog names {r['file']} but the index links "
+                           f"{target}; the dataset is inconsistent, nothing was changed (ingest it again into a "
+                           "new output)")
+        parts = Path(r["file"]).parts
+        if len(parts) > 2:
+            folders.add(parts[1])
+    return folders
+
+
 def remove_unreferenced(index: Path) -> None:
     """What killed ingests left: temp files of the index (.adl.h5.tmp<pid>), hidden folders of runs whose process
     is gone, and run folders no index names (killed between the folder's rename and the index's)."""
@@ -156,7 +192,7 @@ def remove_unreferenced(index: Path) -> None:
     named: set[str] = set()
     if index.exists():
         with h5py.File(index, "r") as f:
-            named = {Path(r["file"]).parts[1] for r in schema.read_catalog(f) if len(Path(r["file"]).parts) > 2}
+            named = referenced_folders(index, f)
     for d in root.iterdir():
         if d.name.startswith(".run-") and d.name.endswith(".tmp"):
             pid = d.name[:-4].rsplit("-", 1)[-1]

@@ -35,8 +35,8 @@ class ResNet18GN(nn.Module):
 
     def __init__(self, in_channels: int, out_dim: int, width: int = 64) -> None:
         super().__init__()
-        self.stem = nn.Sequential(nn.Conv2d(in_channels, width, 7, 2, 3, bias=False), _norm(width), nn.ReLU(inplace=True),
-                                  nn.MaxPool2d(3, 2, 1))
+        self.stem = nn.Sequential(nn.Conv2d(in_channels, width, 7, 2, 3, bias=False), _norm(width),
+                                  nn.ReLU(inplace=True), nn.MaxPool2d(3, 2, 1))
         layers, cin = [], width
         for i, cout in enumerate([width, 2 * width, 4 * width, 8 * width]):
             layers += [BasicBlock(cin, cout, 1 if i == 0 else 2), BasicBlock(cout, cout, 1)]
