@@ -66,12 +66,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", nargs="+", help="episode names to export (default: all)")
     p.add_argument("--split", type=Path, help="split JSON for --split-part (default: split.json beside the data)")
     p.add_argument("--split-part", choices=["train", "test"], help="export only this part of the split")
+    p.add_argument("--skip-bad", action="store_true",
+                   help="leave out episodes whose files cannot be read (each named) instead of stopping")
     args = p.parse_args(argv)
     names = args.episodes
     if args.split_part:
         names = load_split(args.split or args.data.with_name("split.json"))[args.split_part]
         if not names:
             raise AdlError(f"the {args.split_part} split is empty")
+    if args.skip_bad:
+        names, bad = schema.readable_episodes(args.data, list(dict.fromkeys(names)) if names else None)
+        for line in bad:
+            print(f"adlpipe.export: skipped bad episode: {line}", file=sys.stderr)
+        if not names:
+            raise AdlError(f"{args.data}: no readable episodes to export")
     info = export_lerobot(args.data, args.out, names, progress=True)
     print(f"{args.out}: LeRobotDataset {info['codebase_version']}, {info['total_episodes']} episode(s), "
           f"{info['total_frames']} frames at {info['fps']} fps, {info['total_tasks']} task(s)")

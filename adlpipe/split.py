@@ -1,6 +1,10 @@
 """80/20 train/test split by episode, stratified per task, deterministic from a seed; stored beside the data.
 
-    python -m adlpipe.split data/adl.h5 [-o data/split.json] [--test-fraction 0.2] [--seed 0]
+    python -m adlpipe.split data/adl.h5 [-o data/split.json] [--test-fraction 0.2] [--seed 0] [--skip-bad]
+
+Every stage after it reads the episodes the split names, so --skip-bad here is where a dataset with a damaged
+episode file goes on without it: the split leaves such episodes out (each named on stderr, and in the split's
+"skipped") and every later stage reads only what it names.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-o", "--output", type=Path, help="split JSON (default: split.json beside the data)")
     p.add_argument("--test-fraction", type=float_range(0, 1, lo_open=True), default=0.2)
     p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--skip-bad", action="store_true",
+                   help="leave out episodes whose files cannot be read (each named) instead of stopping")
     p.add_force()
     args = p.parse_args(argv)
     if not 0 < args.test_fraction < 1:
@@ -29,15 +35,20 @@ def main(argv: list[str] | None = None) -> int:
     out = args.output or args.data.with_name("split.json")
     check_outputs(out)
     refuse_pipeline_outputs([out], args.force)
-    with schema.open_dataset(args.data) as f:
-        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in schema.episode_names(f)}
+    names, bad = schema.readable_episodes(args.data) if args.skip_bad else (None, [])
+    for line in bad:
+        print(f"adlpipe.split: skipped bad episode: {line}", file=sys.stderr)
+    with schema.open_dataset(args.data, names) as f:
+        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in names or schema.episode_names(f)}
     if not tasks:
-        raise AdlError(f"{args.data}: dataset has no episodes")
+        raise AdlError(f"{args.data}: dataset has no {'readable ' if bad else ''}episodes")
     split = make_split(tasks, args.test_fraction, args.seed)
     split.update({"seed": args.seed, "test_fraction": args.test_fraction, "data": str(args.data)})
+    if bad:
+        split["skipped"] = bad
     write_json_atomic(out, split)
     print(f"{out}: {len(split['train'])} train / {len(split['test'])} test episodes over "
-          f"{len(set(tasks.values()))} task(s)")
+          f"{len(set(tasks.values()))} task(s)" + (f", {len(bad)} bad episode(s) left out" if bad else ""))
     return 0
 
 

@@ -589,6 +589,17 @@ def test_a_damaged_episode_file_is_one_line_naming_episode_and_file(capsys: pyte
         line = one_line_error(run_stage(capsys, stage, *args))
         assert name in line and str(path) in line and "cannot be read" in line, (stage, line)
     assert not (tmp_path / "s.json").exists() and not (tmp_path / "out").exists()
+    # --skip-bad: split and export go on without it, naming it; every later stage reads what the split names
+    with h5py.File(data) as f:
+        names = sorted(f["episodes"])
+    proc = run_stage(capsys, "split", data, "-o", tmp_path / "s.json", "--skip-bad")
+    assert proc.returncode == 0, proc.stderr
+    assert f"skipped bad episode: {data}: episode {name}: its file" in proc.stderr
+    split = json.loads((tmp_path / "s.json").read_text())
+    assert sorted(split["train"] + split["test"]) == [n for n in names if n != name] and len(split["skipped"]) == 1
+    proc = run_stage(capsys, "export", data, tmp_path / "out", "--skip-bad")
+    assert proc.returncode == 0 and f"episode {name}" in proc.stderr, proc.stderr
+    assert f"{len(names) - 1} episode(s)" in proc.stdout
     before = data.read_bytes()  # an append refuses to build on it and changes nothing
     line = one_line_error(run_stage(capsys, "ingest", mcap_bags[0], "-o", data, "--size", "64"))
     assert line.startswith("adlpipe.ingest: error: cannot append to a damaged dataset") and name in line

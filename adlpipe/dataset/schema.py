@@ -155,18 +155,41 @@ def open_dataset(path: Path | str, names: list[str] | None = None) -> Iterator[h
         files = {n: episode_path(path, f, n) for n in present}  # every link resolved and confined (no file is
         # opened for this) before HDF5 follows any of them
         for n in wanted:
-            file = files[n]
-            try:
-                g = f[EPISODES][n]
-            except (KeyError, OSError) as exc:  # truncated, emptied, not HDF5, unreadable: HDF5 cannot open it
-                why = " ".join(str(exc).split())[:100]
-                raise AdlError(f"{path}: episode {n}: its file {file} cannot be read ({why}); re-ingest its bag "
-                               "into a new dataset") from None
-            if Path(g.file.filename).resolve() != file:
-                raise AdlError(f"{path}: episode {n}: HDF5 opened {g.file.filename} instead of {file}")
-            check_self_contained(g.file, f"{path}: episode {n}")
-            check_episode(g, f"{path}:{n}")
+            check_episode_file(path, f, n, files[n])
         yield f
+
+
+def check_episode_file(path: Path, f: h5py.File, name: str, file: Path) -> None:
+    """Episode `name` of the open index `f` readable from its own file `file` (episode_path), self-contained and
+    well formed; one line naming the episode and the file otherwise."""
+    try:
+        g = f[EPISODES][name]
+    except (KeyError, OSError) as exc:  # truncated, emptied, not HDF5, unreadable: HDF5 cannot open it
+        why = " ".join(str(exc).split())[:100]
+        raise AdlError(f"{path}: episode {name}: its file {file} cannot be read ({why}); re-ingest its bag into a "
+                       "new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
+    if Path(g.file.filename).resolve() != file:
+        raise AdlError(f"{path}: episode {name}: HDF5 opened {g.file.filename} instead of {file}")
+    check_self_contained(g.file, f"{path}: episode {name}")
+    check_episode(g, f"{path}:{name}")
+
+
+def readable_episodes(path: Path | str, names: list[str] | None = None) -> tuple[list[str], list[str]]:
+    """(the episodes of `names` (all if None) that open_dataset would read, one line for each that it would
+    refuse): what a stage given --skip-bad goes on with. The dataset itself must be readable."""
+    path = Path(path)
+    with open_dataset(path, names=[]) as f:
+        wanted = episode_names(f) if names is None else list(names)
+        good, bad = [], []
+        for n in wanted:
+            try:
+                if n not in f[EPISODES]:
+                    raise AdlError(f"{path}: episode {n} is not in the dataset")
+                check_episode_file(path, f, n, episode_path(path, f, n))
+                good.append(n)
+            except AdlError as exc:
+                bad.append(str(exc))
+    return good, bad
 
 
 def shards_root(index: Path) -> Path:
