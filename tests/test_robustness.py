@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import REPO, SMALL, one_line_error, run_module
+from dataset_fuzzing import DATASET_MUTATIONS, run_dataset_case
 from fuzzing import MUTATIONS, run_case
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -48,6 +49,26 @@ def test_mutated_bags_never_crash_hang_or_leave_partial_files(small_bags: dict[s
                                                                 seed: int, recover: bool) -> None:
     outcome = run_case(small_bags[fmt], mutation, seed, recover=recover)
     assert outcome.ok, f"{fmt} {mutation} seed={seed} recover={recover}: {outcome.kind}\n{outcome.detail}"
+
+
+@pytest.fixture(scope="module")
+def small_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A sharded dataset of three tiny episodes (32 px, 2 Hz frames), to damage."""
+    root = tmp_path_factory.mktemp("fuzz_dataset")
+    run_module("record", "--episodes", "1", "--tasks", "wipe the nose", "pass the water", "cover the food", "--out",
+               root / "bags", "--size", "32", "--camera-hz", "2", check=True)
+    run_module("ingest", *sorted((root / "bags").iterdir()), "-o", root / "adl.h5", "--size", "32", check=True)
+    return root / "adl.h5"
+
+
+@pytest.mark.parametrize("case", range(2 * len(DATASET_MUTATIONS)))
+def test_damaged_datasets_are_one_line_in_every_reading_stage(small_dataset: Path, case: int) -> None:
+    """The index's or an episode file's bytes, a catalog row, a link, a dataset dropped, reshaped or made
+    non-finite, an attribute, a file removed: split and export (train and inspect too, on two cases) succeed or
+    stop with one line and leave nothing (bench/fuzz_ingest.py --dataset runs thousands)."""
+    mutation = DATASET_MUTATIONS[case % len(DATASET_MUTATIONS)]
+    for stage, out in run_dataset_case(small_dataset, mutation, seed=case, heavy=case in (0, 4)):
+        assert out.ok, f"{mutation} seed={case} {stage}: {out.kind}\n{out.detail}"
 
 
 def test_recover_keeps_the_complete_chunks_and_counts_the_loss(mcap_bags: list[Path], tmp_path: Path) -> None:

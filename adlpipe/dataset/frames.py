@@ -171,6 +171,49 @@ class FrameWriter:
         return keep
 
 
+# The per-frame arrays FrameWriter writes: key -> (shape after the frame axis, given the image size S; dtype kinds).
+# None: any one axis (joints, state and action widths).
+_PER_FRAME = {"t": ((), "f"), "rgb": (("S", "S", 3), "u"), "ee_pos": ((3,), "f"), "joint_pos": ((None,), "f"),
+              "gripper": ((), "f"), "state": ((None,), "f"), "action": ((None,), "f"),
+              "depth_index": ((), "iu"), "affordance_index": ((), "iu")}
+_IMAGES = {"depth": ("depth_index", "u"), "affordance": ("affordance_index", "f")}
+
+
+def check_frames(fr: h5py.Group, where: str, size: int) -> None:
+    """A frames group laid out as FrameWriter writes it (shapes, types, indices in range, finite stamps in order),
+    so that no reader meets a malformed array; one line naming the array otherwise."""
+    if not isinstance(fr, h5py.Group) or not isinstance(fr.get("t"), h5py.Dataset):
+        raise AdlError(f"{where}: frames is not a group with its stamps 't'")
+    n = fr["t"].shape[0] if fr["t"].ndim == 1 else -1
+    for key, (tail, kinds) in _PER_FRAME.items():
+        if key not in fr:
+            continue
+        d = fr[key]
+        want = tuple(size if a == "S" else a for a in tail)
+        ok = (isinstance(d, h5py.Dataset) and d.dtype.kind in kinds and d.ndim == 1 + len(want)
+              and d.shape[0] == n and all(w is None or w == s for w, s in zip(want, d.shape[1:], strict=True)))
+        if not ok:
+            shape = d.shape if isinstance(d, h5py.Dataset) else "a group"
+            raise AdlError(f"{where}: frames/{key} is {shape} {getattr(d, 'dtype', '')}, expected "
+                           f"({n}, {', '.join('J' if w is None else str(w) for w in want)}) of kind {kinds}; "
+                           "re-ingest its bag")
+    for key, (index, kind) in _IMAGES.items():
+        if key in fr:
+            d = fr[key]
+            if not isinstance(d, h5py.Dataset) or d.dtype.kind != kind or d.ndim != 3 or d.shape[1:] != (size, size):
+                raise AdlError(f"{where}: frames/{key} is {getattr(d, 'shape', 'a group')}, expected (N, {size}, "
+                               f"{size}); re-ingest its bag")
+        if key in fr and index not in fr:
+            raise AdlError(f"{where}: frames/{key} without frames/{index}; re-ingest its bag")
+        if index in fr:
+            i = fr[index][()]
+            if i.size and (i.min() < -1 or i.max() >= (len(fr[key]) if key in fr else 0)):
+                raise AdlError(f"{where}: frames/{index} points outside frames/{key}; re-ingest its bag")
+    t = fr["t"][()]
+    if not np.isfinite(t).all() or np.any(np.diff(t) < 0):
+        raise AdlError(f"{where}: frame stamps are not finite or go backwards; re-ingest its bag")
+
+
 def nearest_index(t: np.ndarray, ts: np.ndarray, tolerance: float, or_latest: bool = False) -> np.ndarray:
     """For each time in t the index of the nearest stamp in ts within the tolerance; otherwise -1, or (or_latest)
     the latest stamp before it, or the first."""

@@ -39,6 +39,7 @@ import numpy as np
 
 from ..camera import PINHOLE, Lens, read_lens
 from ..errors import AdlError
+from .frames import check_frames
 
 FORMAT_VERSION = 2  # 2: every frame, sharded; 1: the first frame only, one file
 EPISODES = "episodes"
@@ -113,8 +114,24 @@ def check_file(f: h5py.File, path: str, n_waypoints: int | None = None, image_si
     if version != FORMAT_VERSION or EPISODES not in f:
         raise AdlError(f"{path}: not an adlpipe dataset of format version {FORMAT_VERSION} (found {version})")
     for key, want in (("n_waypoints", n_waypoints), ("image_size", image_size)):
-        if want is not None and int(f.attrs[key]) != want:
-            raise AdlError(f"{path}: file has {key}={int(f.attrs[key])}, asked for {want}; use a new output file")
+        try:
+            value = int(f.attrs[key])
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            raise AdlError(f"{path}: no readable integer '{key}' attribute ({_why(exc)}); not an adlpipe dataset "
+                           "or a damaged one") from None
+        if value <= 0:
+            raise AdlError(f"{path}: {key}={value}; not an adlpipe dataset or a damaged one")
+        if want is not None and value != want:
+            raise AdlError(f"{path}: file has {key}={value}, asked for {want}; use a new output file")
+
+
+# What h5py raises when a file's structure is damaged where it reads it (a header, a symbol table, a heap): the
+# open file is readable but the object is not.
+DAMAGED = (KeyError, RuntimeError, ValueError, TypeError, OSError, SystemError)
+
+
+def _why(exc: BaseException) -> str:
+    return " ".join(str(exc).split())[:100]
 
 
 REQUIRED = {"rgb": 3, "affordance": 2, "traj3d": 2, "traj2d": 2, "K": 2, "T_base_camera": 2, "objects": 2}
@@ -145,15 +162,19 @@ def open_dataset(path: Path | str, names: list[str] | None = None) -> Iterator[h
     except OSError as exc:
         raise AdlError(f"{path}: not an HDF5 file ({' '.join(str(exc).split())[:120]})") from None
     with f:
-        check_file(f, str(path))
-        present = set(f[EPISODES].keys())
-        wanted = episode_names(f) if names is None else list(names)
-        missing = [n for n in wanted if n not in present]
-        if missing:
-            raise AdlError(f"{path}: {len(missing)} episode(s) named by the split are not in the dataset "
-                           f"(e.g. {missing[0]!r}); re-run python -m adlpipe.split on this file")
-        files = {n: episode_path(path, f, n) for n in present}  # every link resolved and confined (no file is
-        # opened for this) before HDF5 follows any of them
+        try:
+            check_file(f, str(path))
+            present = set(f[EPISODES].keys())
+            wanted = episode_names(f) if names is None else list(names)
+            missing = [n for n in wanted if n not in present]
+            if missing:
+                raise AdlError(f"{path}: {len(missing)} episode(s) named by the split are not in the dataset "
+                               f"(e.g. {missing[0]!r}); re-run python -m adlpipe.split on this file")
+            files = {n: episode_path(path, f, n) for n in present}  # every link resolved and confined (no file is
+            # opened for this) before HDF5 follows any of them
+        except DAMAGED as exc:
+            raise AdlError(f"{path}: the dataset's index is damaged ({_why(exc)}); ingest the bags again into a new "
+                           "dataset") from None
         for n in wanted:
             check_episode_file(path, f, n, files[n])
         yield f
@@ -164,14 +185,17 @@ def check_episode_file(path: Path, f: h5py.File, name: str, file: Path) -> None:
     well formed; one line naming the episode and the file otherwise."""
     try:
         g = f[EPISODES][name]
-    except (KeyError, OSError) as exc:  # truncated, emptied, not HDF5, unreadable: HDF5 cannot open it
-        why = " ".join(str(exc).split())[:100]
-        raise AdlError(f"{path}: episode {name}: its file {file} cannot be read ({why}); re-ingest its bag into a "
-                       "new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
+    except DAMAGED as exc:  # truncated, emptied, not HDF5, unreadable: HDF5 cannot open it
+        raise AdlError(f"{path}: episode {name}: its file {file} cannot be read ({_why(exc)}); re-ingest its bag "
+                       "into a new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
     if Path(g.file.filename).resolve() != file:
         raise AdlError(f"{path}: episode {name}: HDF5 opened {g.file.filename} instead of {file}")
-    check_self_contained(g.file, f"{path}: episode {name}")
-    check_episode(g, f"{path}:{name}")
+    try:
+        check_self_contained(g.file, f"{path}: episode {name}")
+        check_episode(g, f"{path}:{name}")
+    except DAMAGED as exc:
+        raise AdlError(f"{path}: episode {name}: its file {file} is damaged ({_why(exc)}); re-ingest its bag into a "
+                       "new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
 
 
 def readable_episodes(path: Path | str, names: list[str] | None = None) -> tuple[list[str], list[str]]:
@@ -274,8 +298,8 @@ def check_episode(g: h5py.Group, where: str) -> None:
     if c != 3 or h != w or g["affordance"].shape != (h, w) or ("depth" in g and g["depth"].shape != (h, w)):
         raise AdlError(f"{where}: first-frame images rgb {g['rgb'].shape} / affordance {g['affordance'].shape}, "
                        "expected (S, S, 3) / (S, S)")
-    if "frames" in g and "rgb" in g["frames"] and g["frames"]["rgb"].shape[1:] != (h, w, 3):
-        raise AdlError(f"{where}: frames/rgb {g['frames']['rgb'].shape[1:]} per frame, the first frame {(h, w, 3)}")
+    if "frames" in g:
+        check_frames(g["frames"], where, h)
     t3, t2 = g["traj3d"], g["traj2d"]
     if t3.shape[1:] != (3,) or t2.shape != (t3.shape[0], 2):
         raise AdlError(f"{where}: traj3d/traj2d shapes {t3.shape}/{t2.shape}, expected (N, 3)/(N, 2)")
