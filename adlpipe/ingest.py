@@ -25,6 +25,7 @@ is untouched until `--gather` links every finished share into it:
 from __future__ import annotations
 
 import argparse
+import errno
 import hashlib
 import multiprocessing
 import os
@@ -268,9 +269,29 @@ def check_bag_path(bag: Path) -> None:
         raise AdlError(f"{bag}: not a regular file or folder (a pipe, device or socket); give a bag file")
 
 
-def _ignore_sigint() -> None:
-    """Pool workers leave Ctrl-C to the parent, which stops them; a worker dying mid-result would hang the pool."""
+def _pool_worker_init() -> None:
+    """Pool workers leave Ctrl-C to the parent, which stops them (a worker dying mid-result would hang the pool),
+    and report a full disk once."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _report_full_disk_once()
+
+
+def _report_full_disk_once() -> None:
+    """After the disk filled, every HDF5 object released on the way out tries its write again and fails in a
+    Cython destructor, which prints the error (through sys.excepthook) and then reports it as unraisable, each
+    time; the full disk is already the stage's one error line, so those two hooks pass over it."""
+    def full_disk(exc: BaseException | None) -> bool:
+        return isinstance(exc, OSError) and exc.errno == errno.ENOSPC
+
+    def unraisable(u: sys.UnraisableHookArgs) -> None:
+        if not full_disk(u.exc_value):
+            sys.__unraisablehook__(u)
+
+    def excepthook(kind: type[BaseException], exc: BaseException, tb: object) -> None:
+        if not full_disk(exc):
+            sys.__excepthook__(kind, exc, tb)
+
+    sys.unraisablehook, sys.excepthook = unraisable, excepthook
 
 
 def _worker(job: tuple) -> tuple[str, list[dict[str, str]], str, str | None]:
@@ -298,6 +319,12 @@ def _worker(job: tuple) -> tuple[str, list[dict[str, str]], str, str | None]:
         return bag, rows, f"{len(rows)} demonstrations" + (f" ({'; '.join(notes)})" if notes else ""), None
     except AdlError as exc:
         error = str(exc)
+    except OSError as exc:
+        if exc.errno != errno.ENOSPC:
+            error = f"{bag}: cannot ingest (OSError: {' '.join(str(exc).split())[:200]})"
+        else:  # the disk filled while writing: no bag's fault, and no later bag fares better; the run stops
+            Path(out).unlink(missing_ok=True)
+            raise
     except MemoryError:
         error = f"{bag}: out of memory while reading the bag"
     except Exception as exc:  # noqa: BLE001 - one bag's unforeseen failure must not take the batch down
@@ -397,7 +424,12 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
     try:
         jobs = [(str(b), tm, n_waypoints, size, task, recover, known_shas, allow_tf_gaps, segments,
                  str(tmp_dir / f"{i:06d}.h5")) for i, b in enumerate(bags)]
-        results = _run_jobs(jobs, workers, progress)
+        try:
+            results = _run_jobs(jobs, workers, progress)
+        except OSError as exc:
+            if exc.errno == errno.ENOSPC:  # name the dataset, not a temp file of the run (removed below)
+                raise OSError(errno.ENOSPC, "No space left on device", str(output)) from None
+            raise
         errors = [err for _b, _r, _n, err in results if err]
         if errors and not skip_bad:
             more = f" (and {len(errors) - 1} more bad bag(s))" if len(errors) > 1 else ""
@@ -434,7 +466,7 @@ def _run_jobs(jobs: list[tuple], workers: int, progress: bool) -> list[tuple]:
     # held back while the workers fork, so it never meets a half-built pool.
     held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        pool = multiprocessing.get_context("fork").Pool(workers, initializer=_ignore_sigint)
+        pool = multiprocessing.get_context("fork").Pool(workers, initializer=_pool_worker_init)
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, held)
     try:
@@ -467,6 +499,7 @@ def check_free_space(output: Path, bags: Iterable[Path]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    _report_full_disk_once()
     args.bags = recordings(args.bags)  # a folder of ROS1 bags: its bags; a split recording's parts: one recording
     if args.suggest_config:
         print(suggest_config(survey(args.bags[0])), end="")

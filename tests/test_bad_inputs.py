@@ -343,13 +343,27 @@ def test_ctrl_c_stops_an_ingest_and_keeps_the_old_file(mcap_bags: list[Path], tm
 
 
 @pytest.mark.skipif(not _can_unshare(), reason="needs unshare for a private small file system")
-@pytest.mark.parametrize("stage", ["ingest", "train"])
+@pytest.mark.parametrize("stage", ["ingest", "ingest-while-writing", "train"])
 def test_a_full_disk_is_one_line_and_keeps_the_old_output(world: dict, mcap_bags: list[Path], tmp_path: Path,
                                                           stage: str) -> None:
     small = tmp_path / "small"
     small.mkdir()
     old = world["root"] / "old_small.h5"
-    if stage == "ingest":  # a dataset of one bag, to be extended by the other two on a nearly full disk
+    size_mb = 3
+    if stage == "ingest-while-writing":
+        # the space check passes (a 1 MB bag, 20 MB free) but its frames stored at 2048 px take about 28 MB: the
+        # disk fills while the episode is written, in a pool worker
+        old = tmp_path / "big" / "x.h5"
+        old.parent.mkdir()
+        subprocess.run([sys.executable, "-m", "adlpipe.ingest", str(mcap_bags[0]), "-o", str(old), "--size", "2048"],
+                       cwd=REPO, check=True, capture_output=True)
+        shards = old.with_suffix(".shards")
+        size_mb = int(sum(p.stat().st_size for p in shards.rglob("*") if p.is_file()) / 2**20) + 20
+        inner = (f"cp '{old}' '{small}/x.h5' && cp -r '{shards}' '{small}/x.shards' && '{sys.executable}' -m "
+                 f"adlpipe.ingest '{mcap_bags[1]}' '{mcap_bags[2]}' -o '{small}/x.h5' --size 2048 --workers 2; rc=$?; "
+                 f"ls '{small}/x.shards'; (exit $rc)")
+        target = "x.h5"
+    elif stage == "ingest":  # a dataset of one bag, to be extended by the other two on a nearly full disk
         subprocess.run([sys.executable, "-m", "adlpipe.ingest", str(mcap_bags[0]), "-o", str(old), "--size", "64"],
                        cwd=REPO, check=True, capture_output=True)
         shards = old.with_suffix(".shards")  # the index and its episode files: a whole dataset to append to
@@ -363,7 +377,7 @@ def test_a_full_disk_is_one_line_and_keeps_the_old_output(world: dict, mcap_bags
                  f"'{small}/filler'; '{sys.executable}' -m adlpipe.train --model fm_cnn --data '{world['data']}' "
                  f"--split '{world['split']}' --out '{small}/m' --epochs 1 --image-size 32")
         target = None
-    script = (f"mount -t tmpfs -o size=3m tmpfs '{small}' && {inner}; rc=$?; "
+    script = (f"mount -t tmpfs -o size={size_mb}m tmpfs '{small}' && {inner}; rc=$?; "
               f"ls -a '{small}' '{small}/m' 2>/dev/null; cmp '{small}/x.h5' '{old}' 2>/dev/null && echo SAME; exit $rc")
     proc = subprocess.run(["unshare", "-rm", "sh", "-c", script], capture_output=True, text=True, cwd=REPO,
                           timeout=300)
@@ -372,6 +386,8 @@ def test_a_full_disk_is_one_line_and_keeps_the_old_output(world: dict, mcap_bags
     assert ".tmp" not in proc.stdout
     if target:
         assert "SAME" in proc.stdout
+    if stage == "ingest-while-writing":  # only the old run's folder: the new run's files went with it
+        assert proc.stdout.split()[0].startswith("run-") and ".run-" not in proc.stdout
 
 
 def test_a_jpeg_with_its_frame_header_past_64_kib_decodes() -> None:
