@@ -16,6 +16,7 @@ and predicted 2D trajectories as line strips on the image, the 3D trajectories i
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -26,10 +27,10 @@ import torch
 
 from .atomic import atomic_path, check_outputs
 from .cli import SEED, Parser, int_range
-from .dataset import schema
+from .dataset import schema, viewer
 from .dataset.loader import Normalizer, observation
 from .dataset.splits import load_split
-from .dataset.viewer import affordance_overlay, write_dataset_recording
+from .dataset.viewer import affordance_overlay, close_recording, write_dataset_recording
 from .errors import AdlError, read_json_object, run_cli
 from .outcomes import outcome_text
 from .policy.checkpoint import CHECKPOINTS, load_policy
@@ -51,11 +52,13 @@ def write_recording(out: Path, episodes: list[schema.Episode], preds: list[np.nd
                     outcomes: list[str] | None = None) -> None:
     """preds[i]: (K, N, 5) samples (u, v, x, y, z) for episodes[i]; outcomes[i]: replay's verdicts on it (logged as
     world/replay when not empty). Written to a temp file, then renamed."""
+    viewer.check_recording_space(out, sum(ep.rgb.nbytes * 3 + p.nbytes for ep, p in zip(episodes, preds,
+                                                                                       strict=True)))
     with atomic_path(out) as tmp:
-        _record(tmp, episodes, preds, model, outcomes or [""] * len(episodes))
+        _record(tmp, out, episodes, preds, model, outcomes or [""] * len(episodes))
 
 
-def _record(path: Path, episodes: list[schema.Episode], preds: list[np.ndarray], model: str,
+def _record(path: Path, out: Path, episodes: list[schema.Episode], preds: list[np.ndarray], model: str,
             outcomes: list[str]) -> None:
     rec = rr.RecordingStream("adlpipe_inspect")
     rec.save(path, default_blueprint=blueprint())
@@ -77,8 +80,7 @@ def _record(path: Path, episodes: list[schema.Episode], preds: list[np.ndarray],
         rec.log("world/task", rr.TextDocument(f"{ep.task}\n{ep.source_path}"))
         if outcome:
             rec.log("world/replay", rr.TextDocument(outcome))
-    rec.flush()
-    rec.disconnect()
+    close_recording(rec, path, out)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -165,4 +167,9 @@ def record_dataset(args: object) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(run_cli("adlpipe.inspect", main))
+    code = run_cli("adlpipe.inspect", main)
+    if viewer.writer_stuck():  # Rerun's writer stopped on a full disk and would hold the exit forever
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)

@@ -343,7 +343,7 @@ def test_ctrl_c_stops_an_ingest_and_keeps_the_old_file(mcap_bags: list[Path], tm
 
 
 @pytest.mark.skipif(not _can_unshare(), reason="needs unshare for a private small file system")
-@pytest.mark.parametrize("stage", ["ingest", "ingest-while-writing", "train"])
+@pytest.mark.parametrize("stage", ["ingest", "ingest-while-writing", "train", "inspect", "inspect-dataset"])
 def test_a_full_disk_is_one_line_and_keeps_the_old_output(world: dict, mcap_bags: list[Path], tmp_path: Path,
                                                           stage: str) -> None:
     small = tmp_path / "small"
@@ -372,13 +372,24 @@ def test_a_full_disk_is_one_line_and_keeps_the_old_output(world: dict, mcap_bags
                  f"- 50000 )) /dev/zero > '{small}/filler'; '{sys.executable}' -m adlpipe.ingest "
                  + " ".join(f"'{b}'" for b in mcap_bags) + f" -o '{small}/x.h5' --size 64")
         target = "x.h5"
+    elif stage.startswith("inspect"):  # Rerun writes the file on its own thread: a full disk raised nothing there
+        args = (["--dataset", "--data", str(world["data"])] if stage == "inspect-dataset" else
+                ["--model", str(world["model"]), "--data", str(world["data"]), "--split", str(world["split"])])
+        old = tmp_path / "old.rrd"
+        subprocess.run([sys.executable, "-m", "adlpipe.inspect", *args, "-o", str(old)], cwd=REPO, check=True,
+                       capture_output=True)
+        inner = (f"cp '{old}' '{small}/x.rrd' && head -c $(( $(stat -f -c %a '{small}') * $(stat -f -c %S "
+                 f"'{small}') - 20000 )) /dev/zero > '{small}/filler'; '{sys.executable}' -m adlpipe.inspect "
+                 + " ".join(f"'{a}'" for a in args) + f" -o '{small}/x.rrd'")
+        target = "x.rrd"
     else:
         inner = (f"head -c $(( $(stat -f -c %a '{small}') * $(stat -f -c %S '{small}') - 20000 )) /dev/zero > "
                  f"'{small}/filler'; '{sys.executable}' -m adlpipe.train --model fm_cnn --data '{world['data']}' "
                  f"--split '{world['split']}' --out '{small}/m' --epochs 1 --image-size 32")
         target = None
     script = (f"mount -t tmpfs -o size={size_mb}m tmpfs '{small}' && {inner}; rc=$?; "
-              f"ls -a '{small}' '{small}/m' 2>/dev/null; cmp '{small}/x.h5' '{old}' 2>/dev/null && echo SAME; exit $rc")
+              f"ls -a '{small}' '{small}/m' 2>/dev/null; cmp '{small}/{target}' '{old}' 2>/dev/null && echo SAME; "
+              "exit $rc")
     proc = subprocess.run(["unshare", "-rm", "sh", "-c", script], capture_output=True, text=True, cwd=REPO,
                           timeout=300)
     line = one_line_error(proc)

@@ -19,6 +19,8 @@ Frames are read and logged one at a time: memory stays flat in the number of epi
 
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 
 import cv2
@@ -53,6 +55,9 @@ def blueprint() -> rrb.Blueprint:
 
 def write_dataset_recording(out: Path, data: Path, names: list[str]) -> int:
     """Record the named episodes of the dataset to `out` (temp file, then renamed); returns the frames logged."""
+    with schema.open_dataset(data, names) as f:  # Rerun keeps images raw: RGB, depth and the affordance overlay
+        frames = [f[schema.EPISODES][n]["frames"]["rgb"].shape[:3] for n in names]
+    check_recording_space(out, sum(t * h * w * 11 for t, h, w in frames))
     with atomic_path(out) as tmp:
         rec = rr.RecordingStream("adlpipe_dataset")
         rec.save(tmp, default_blueprint=blueprint())
@@ -62,9 +67,50 @@ def write_dataset_recording(out: Path, data: Path, names: list[str]) -> int:
             for i, name in enumerate(names):
                 duration, frame = _episode(rec, f[schema.EPISODES][name], i, start, frame)
                 start += duration + GAP_S
-        rec.flush()
-        rec.disconnect()
+        close_recording(rec, tmp, out)
     return frame
+
+
+# Rerun writes a saved recording on its own thread. When the disk fills, that writer stops and every later flush
+# (and the flush at exit) waits forever; a stage would hang with a truncated .rrd in place. Flushes are polled so a
+# full disk is seen, and the stage's command line then leaves without waiting for the writer (writer_stuck).
+FLUSH_POLL_S = 5.0
+_stuck: list[Path] = []
+# Rerun's save() itself waits forever when the disk is full as it starts: a recording starts only with room for
+# what it will log and this margin.
+SPACE_MARGIN = 8 << 20
+
+
+def check_recording_space(out: Path, estimate: int) -> None:
+    """Refuse to start a recording of about `estimate` bytes where the disk cannot hold it."""
+    parent = out.parent if out.parent.exists() else Path(".")
+    st = os.statvfs(parent)
+    free = st.f_bavail * st.f_frsize
+    if free < estimate + SPACE_MARGIN:
+        raise OSError(errno.ENOSPC, f"No space left on device (needs about {(estimate + SPACE_MARGIN) / 1e6:.0f} "
+                      f"MB, {free / 1e6:.1f} MB free)", str(out))
+
+
+def close_recording(rec: rr.RecordingStream, tmp: Path, out: Path) -> None:
+    """Flush a recording saved to `tmp` and close it; a full disk is an OSError naming `out` (the temp file is then
+    removed by atomic_path and the previous `out` is kept)."""
+    while True:
+        try:
+            rec.flush(timeout_sec=FLUSH_POLL_S)
+            break
+        except RuntimeError:  # not flushed yet: a slow disk, or a writer that stopped on a full one
+            st = os.statvfs(tmp.parent)
+            if st.f_bavail * st.f_frsize >= 1 << 20:
+                continue
+            _stuck.append(out)
+            raise OSError(errno.ENOSPC, "No space left on device", str(out)) from None
+    rec.disconnect()
+
+
+def writer_stuck() -> bool:
+    """Whether a recording's writer stopped on a full disk (this process cannot end through Python's exit, whose
+    flush would wait for it)."""
+    return bool(_stuck)
 
 
 def _episode(rec: rr.RecordingStream, g: object, index: int, start: float, frame: int) -> tuple[float, int]:
