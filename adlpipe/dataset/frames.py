@@ -77,7 +77,7 @@ class FrameWriter:
         self._latest = -np.inf
         self.reordered = 0  # frames logged after a frame with a later stamp
         self.early = 0  # frames stamped before the episode's first image (dropped by finish)
-        self._compressing: deque[tuple[h5py.Dataset, int, Future[bytes]]] = deque()
+        self._compressing: deque[tuple[h5py.Dataset, tuple[int, ...], Future[bytes]]] = deque()
 
     def _append(self, key: str, t: float, arr: np.ndarray) -> None:
         if key not in self.g:
@@ -87,14 +87,14 @@ class FrameWriter:
         i = len(self.t[key])
         d.resize(i + 1, axis=0)
         self.t[key].append(t)
-        self._compressing.append((d, i, _compressor().submit(chunk_bytes, arr)))
+        self._compressing.append((d, (i,) + (0,) * arr.ndim, _compressor().submit(chunk_bytes, arr)))
         while len(self._compressing) > IN_FLIGHT:
             self._write_compressed()
 
     def _write_compressed(self) -> None:
         """Store the oldest compressed frame (HDF5 is only touched from the reading thread)."""
-        d, i, chunk = self._compressing.popleft()
-        d.id.write_direct_chunk((i,) + (0,) * (d.ndim - 1), chunk.result())
+        d, corner, chunk = self._compressing.popleft()
+        d.id.write_direct_chunk(corner, chunk.result())
 
     def rgb(self, t: float, image: np.ndarray, where: str = "image") -> None:
         """Take a frame in log order; it is written in header-stamp order once REORDER_FRAMES later frames came."""
