@@ -143,3 +143,31 @@ def test_gather_leaves_a_share_that_is_still_being_written(six_bags: list[Path],
     assert (folders["live"] / "000000.h5").read_bytes() == b"work in progress"
     assert proc.stderr.count("a share still being written") == 2
     assert not stale.exists()
+
+
+def test_a_malformed_share_catalog_is_one_line_and_gathers_nothing(six_bags: list[Path], tmp_path: Path) -> None:
+    """A share catalog that is not JSON, not an object, without rows, with rows of wrong types or naming a file
+    that is missing: --gather says so in one line, links nothing and removes nothing."""
+    from conftest import one_line_error, run_module
+
+    out = tmp_path / "adl.h5"
+    run_module("ingest", *six_bags[:2], "-o", out, "--size", "64", "--shard", "1/1", check=True)
+    share = next(shards.shards_dir(out).glob("share-*"))
+    catalog_file = share / shards.SHARE_CATALOG
+    good = json.loads(catalog_file.read_text())
+    row = good["rows"][0]
+    cases = {
+        "not json": ("{not json", "not a share catalog"),
+        "a list": ("[1, 2]", "not a share catalog"),
+        "no rows": (json.dumps({k: v for k, v in good.items() if k != "rows"}), "no list of rows"),
+        "wrong types": (json.dumps({**good, "rows": [{**row, "name": 7}]}), "a row without the text fields"),
+        "missing file": (json.dumps({**good, "rows": [{**row, "file": "999999.h5"}]}), "is missing; nothing was"),
+    }
+    files = sorted(p.name for p in share.iterdir())
+    for name, (text, needle) in cases.items():
+        catalog_file.write_text(text)
+        line = one_line_error(run_module("ingest", "--gather", "-o", out))
+        assert needle in line, (name, line)
+        assert not out.exists() and sorted(p.name for p in share.iterdir()) == files, name
+    catalog_file.write_text(json.dumps(good))  # mended, it gathers
+    assert "2 episode(s) linked" in run_module("ingest", "--gather", "-o", out, check=True).stdout
