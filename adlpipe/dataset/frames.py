@@ -182,8 +182,11 @@ _IMAGES = {"depth": ("depth_index", "u"), "affordance": ("affordance_index", "f"
 def check_frames(fr: h5py.Group, where: str, size: int) -> None:
     """A frames group laid out as FrameWriter writes it (shapes, types, indices in range, finite stamps in order),
     so that no reader meets a malformed array; one line naming the array otherwise."""
-    if not isinstance(fr, h5py.Group) or not isinstance(fr.get("t"), h5py.Dataset):
-        raise AdlError(f"{where}: frames is not a group with its stamps 't'")
+    if not isinstance(fr, h5py.Group):
+        raise AdlError(f"{where}: frames is not a group")
+    missing = [k for k in ("t", "rgb", "ee_pos", "joint_pos", "gripper") if k not in fr]
+    if missing:  # FrameWriter writes these for every episode
+        raise AdlError(f"{where}: frames lack {', '.join(missing)}; re-ingest its bag")
     n = fr["t"].shape[0] if fr["t"].ndim == 1 else -1
     for key, (tail, kinds) in _PER_FRAME.items():
         if key not in fr:

@@ -134,6 +134,18 @@ def _why(exc: BaseException) -> str:
     return " ".join(str(exc).split())[:100]
 
 
+# Episode attributes readers take as one value: name -> numpy dtype kinds (text; bool, integer, float).
+SCALAR_ATTRS = {"task": "OSU", "has_depth": "biuf", "has_affordance": "biuf", "duration_s": "biuf",
+                "stamp0_ns": "biu", "segment": "biu"}
+
+
+def _scalar_of(value: object, kinds: str) -> bool:
+    if isinstance(value, str):
+        return "U" in kinds
+    a = np.asarray(value)
+    return a.ndim == 0 and a.dtype.kind in kinds and (a.dtype.kind != "f" or bool(np.isfinite(a)))
+
+
 REQUIRED = {"rgb": 3, "affordance": 2, "traj3d": 2, "traj2d": 2, "K": 2, "T_base_camera": 2, "objects": 2}
 
 
@@ -294,6 +306,10 @@ def check_episode(g: h5py.Group, where: str) -> None:
             raise AdlError(f"{where}: episode lacks a {ndim}-D '{key}' dataset")
     if "task" not in g.attrs:
         raise AdlError(f"{where}: episode has no 'task' attribute")
+    for key, kinds in SCALAR_ATTRS.items():  # what readers take as one text, flag or number
+        if key in g.attrs and not _scalar_of(g.attrs[key], kinds):
+            raise AdlError(f"{where}: attribute '{key}' is {str(g.attrs[key])[:40]!r}, not one "
+                           f"{'text' if kinds == 'OSU' else 'number'}; re-ingest its bag")
     h, w, c = g["rgb"].shape
     if c != 3 or h != w or g["affordance"].shape != (h, w) or ("depth" in g and g["depth"].shape != (h, w)):
         raise AdlError(f"{where}: first-frame images rgb {g['rgb'].shape} / affordance {g['affordance'].shape}, "
@@ -372,10 +388,15 @@ CATALOG_FIELDS = ("name", "key", "task", "file")
 
 def read_catalog(f: h5py.File) -> list[dict[str, str]]:
     """One row per episode: name, key (sha256[#segment]), task and its file relative to the index."""
-    if CATALOG not in f:
-        return []
-    cols = {k: [v.decode() if isinstance(v, bytes) else str(v) for v in f[CATALOG][k][()]] for k in CATALOG_FIELDS}
-    return [dict(zip(CATALOG_FIELDS, row, strict=True)) for row in zip(*cols.values(), strict=True)]
+    try:
+        if CATALOG not in f:
+            return []
+        cols = {k: [v.decode() if isinstance(v, bytes) else str(v) for v in f[CATALOG][k][()]]
+                for k in CATALOG_FIELDS}
+        return [dict(zip(CATALOG_FIELDS, row, strict=True)) for row in zip(*cols.values(), strict=True)]
+    except DAMAGED as exc:  # a column missing, of another length, or a damaged table
+        raise AdlError(f"{f.filename}: the dataset's catalog cannot be read ({_why(exc)}); ingest the bags again "
+                       "into a new dataset") from None
 
 
 def check_horizon(model: Path | str, horizon: int, f: h5py.File, data: Path | str) -> None:

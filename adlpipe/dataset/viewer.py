@@ -30,6 +30,7 @@ import rerun.blueprint as rrb
 
 from ..atomic import atomic_path
 from ..camera import project, read_lens
+from ..errors import AdlError
 from . import schema
 
 EE_COLOR = [250, 200, 40]
@@ -55,6 +56,15 @@ def blueprint() -> rrb.Blueprint:
 
 def write_dataset_recording(out: Path, data: Path, names: list[str]) -> int:
     """Record the named episodes of the dataset to `out` (temp file, then renamed); returns the frames logged."""
+    try:
+        return _write_dataset_recording(out, data, names)
+    except (KeyError, RuntimeError, ValueError, TypeError, SystemError) as exc:  # damage below what opening the
+        # dataset checks (a table deep in a file); OS errors (a full disk) pass as they are
+        raise AdlError(f"{data}: a damaged episode or index ({' '.join(str(exc).split())[:100]}); re-ingest its "
+                       "bags into a new dataset") from None
+
+
+def _write_dataset_recording(out: Path, data: Path, names: list[str]) -> int:
     with schema.open_dataset(data, names) as f:  # Rerun keeps images raw: RGB, depth and the affordance overlay
         frames = [f[schema.EPISODES][n]["frames"]["rgb"].shape[:3] for n in names]
     check_recording_space(out, sum(t * h * w * 11 for t, h, w in frames))
