@@ -38,10 +38,10 @@ from .errors import AdlError, run_cli
 from .metrics import commitment, waypoint_errors
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
-from .policy.inference import latency_ms, predict
+from .policy.inference import latency_samples_ms, predict
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
 from .runtime import Placement, add_device_args
-from .stats import mean_interval, ratio_interval
+from .stats import mean_interval, median_interval, ratio_interval
 from .tables import error_cell, share_cell
 
 STEPS = [1, 2, 4, 8, 16]
@@ -128,6 +128,13 @@ def error_figures(px: torch.Tensor, cm: torch.Tensor, best_px: torch.Tensor, bes
     return out
 
 
+def latency_figures(policy: object, obs: torch.Tensor, steps: int, method: str, repeats: int,
+                    placement: Placement) -> dict:
+    """The median ms of one prediction (batch 1) and the bootstrap interval of that median over the repeats."""
+    times = latency_samples_ms(policy, obs, steps, method, repeats, placement)
+    return {"ms": float(np.median(times)), "ms_ci": list(median_interval(times))}
+
+
 def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: list[int],
                    methods_by_kind: dict[str, list[str]], k: int, repeats: int, seed: int, image_px: int,
                    checkpoint: str = "model.pt", timings: dict | None = None,
@@ -164,14 +171,14 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
                 p2, c2 = waypoint_errors(samples[-1], gt)
                 best_px, best_cm = torch.minimum(best_px, p2), torch.minimum(best_cm, c2)
             key = f"{method}/{steps}"
-            ms = (timings or {}).get(key, {}).get("ms")
+            timed = (timings or {}).get(key) or latency_figures(policy, obs[:1], steps, method, repeats, placement)
             rows[key] = {
                 "model": cfg.model, "method": method, "steps": steps, "epoch": int(ck.get("epoch", 0)),
                 "default": key == DEFAULTS.get(cfg.model),
                 "evaluations": policy.objective.evaluations(steps, method), "image_px": image_px,
                 "input_px": cfg.image_size, **error_figures(px, cm, best_px, best_cm, tasks, k, image_px),
                 **mode_figures(samples, modes or {}, tasks),
-                "ms": ms if ms is not None else latency_ms(policy, obs[:1], steps, method, repeats, placement),
+                "ms": timed["ms"], "ms_ci": timed.get("ms_ci"),
             }
     return rows
 
@@ -188,7 +195,7 @@ def blind_rows(data: Path, split: dict, image_px: int, k: int) -> dict:
     px, cm = waypoint_errors(pred, gt.float())
     row = {"model": BLIND, "method": "task_mean", "steps": 1, "epoch": 0, "default": True, "evaluations": 0,
            "image_px": image_px, "input_px": 0, **error_figures(px, cm, px, cm, tasks, k, image_px),
-           **mode_figures([], {}, tasks), "ms": 0.0}
+           **mode_figures([], {}, tasks), "ms": 0.0, "ms_ci": None}
     return {"task_mean/1": row}
 
 
@@ -201,8 +208,8 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
              "images; cm likewise with its interval. best: the checkpoint with the lowest validation px; last: the "
              f"final one. {BLIND}: the blind baseline, each test episode's task mean training trajectory (it ignores "
              "the image): the floor a model's learning is measured against.", "",
-             f"| method | checkpoint (epoch) | converged | sampler | steps | px [95 %] | px224 | cm [95 %] | ms | "
-             f"best-of-{k} px [95 %] | "
+             "| method | checkpoint (epoch) | converged | sampler | steps | px [95 %] | px224 | cm [95 %] | "
+             f"ms [95 %] | best-of-{k} px [95 %] | "
              "px (multimodal tasks) [95 %] | mode commitment [95 %] |",
              "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for model, by_ck in results.items():
@@ -215,7 +222,8 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
             for r in rows.values():
                 mm = error_cell(r, "px_multimodal") if r["px_multimodal"] is not None else "-"
                 lines.append(f"| {model} | {ck} ({r['epoch']}) | {conv} | {r['method']} | {r['steps']} | "
-                             f"{error_cell(r, 'px')} | {r['px224']:.2f} | {error_cell(r, 'cm')} | {r['ms']:.1f} | "
+                             f"{error_cell(r, 'px')} | {r['px224']:.2f} | {error_cell(r, 'cm')} | "
+                             f"{error_cell(r, 'ms', 1)} | "
                              f"{error_cell(r, f'best_of_{k}_px')} | {mm} | {share_cell(r, 'commitment')} |")
     return "\n".join(lines) + "\n"
 

@@ -221,7 +221,8 @@ def mode_lines(ev: dict, rp: dict) -> list[str]:
     default step count and at 16 steps."""
     tasks = rp.get("tasks", {})
     head = " | ".join(AVERAGING_FAILS)
-    lines = [f"| policy | steps | px [95 %] | ms | mode commitment [95 %] | to the demonstrated mode [95 %] | {head} |",
+    lines = ["| policy | steps | px [95 %] | ms [95 %] | mode commitment [95 %] | to the demonstrated mode [95 %] | "
+             f"{head} |",
              "| --- | ---: | ---: | ---: | ---: | ---: |" + " ---: |" * len(AVERAGING_FAILS)]
     for model, by_ck in ev.get("models", {}).items():
         best = by_ck.get("best", {})
@@ -236,7 +237,7 @@ def mode_lines(ev: dict, rp: dict) -> list[str]:
             for t in AVERAGING_FAILS:
                 got = [ok for n, ok in per.items() if tasks.get(n) == t]
                 cells.append(f"{rate_cell(sum(got), len(got))} ({len(got)})" if got else "-")
-            lines.append(f"| {model} | {r['steps']} | {error_cell(r, 'px')} | {r['ms']:.1f} | "
+            lines.append(f"| {model} | {r['steps']} | {error_cell(r, 'px')} | {error_cell(r, 'ms', 1)} | "
                          f"{share_cell(r, 'commitment')} | {share_cell(r, 'to_demonstrated')} | "
                          + " | ".join(cells) + " |")
     if len(lines) == 2:
@@ -279,7 +280,7 @@ def _read_log(path: Path) -> dict[str, list[float]]:
 def headline_lines(ev: dict, rp: dict) -> list[str]:
     """One row per model, before the detail: its default sampler's error with intervals on the best checkpoint,
     its latency, whether it converged and its open-loop success (replay) when there is one."""
-    lines = ["| model | sampler | steps | px [95 %] | cm [95 %] | ms | converged | success (replay) [95 %] | "
+    lines = ["| model | sampler | steps | px [95 %] | cm [95 %] | ms [95 %] | converged | success (replay) [95 %] | "
              "success at a fixed speed |", "| --- | --- | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
     success = rp.get("success", {})
     for model in ev.get("models", {}):
@@ -290,7 +291,7 @@ def headline_lines(ev: dict, rp: dict) -> list[str]:
         label = replay_label(model, r)
         ok, fixed = success.get(label), success.get(label + FIXED)
         lines.append(f"| {model} | {r['method']} | {r['steps']} | {error_cell(r, 'px')} | {error_cell(r, 'cm')} | "
-                     f"{r['ms']:.1f} | "
+                     f"{error_cell(r, 'ms', 1)} | "
                      f"{'- (not trained)' if model == BLIND else conv} | {rate_of(ok)} | {rate_of(fixed)} |")
     return lines
 

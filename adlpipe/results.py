@@ -64,7 +64,8 @@ def default_table(ev: dict, rp: dict) -> list[str]:
         conv = {True: "yes", False: "no", None: "-"}[t.get("converged")]
         val = error_cell(t, "val_px_best") if t.get("val_px_best") is not None else ""
         first = key in (None, "task_mean/1") or r.get("default")  # validation and convergence: once per model
-        px = f"{error_cell(r, 'px')} | {r['px224']:.2f} | {error_cell(r, 'cm')} | {r['ms']:.1f}" if r else " | | | "
+        px = (f"{error_cell(r, 'px')} | {r['px224']:.2f} | {error_cell(r, 'cm')} | {error_cell(r, 'ms', 1)}" if r
+              else " | | | ")
         lines.append(f"| {text} | {px} | {rate_of(success.get(label)) if label else ''} | "
                      f"{rate_of(success.get(label + FIXED)) if label else ''} | {val if first else ''} | "
                      f"{conv if first and model else ''} |")

@@ -68,6 +68,18 @@ def mean_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float,
     return float(ci.low), float(ci.high)
 
 
+def median_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float, float]:
+    """The percentile bootstrap interval of the median (e.g. of repeated latency measurements); the value itself
+    when all are equal or there is one."""
+    x = np.asarray(values, float)
+    if len(x) < 2 or np.ptp(x) == 0:
+        m = float(np.median(x)) if len(x) else float("nan")
+        return m, m
+    ci = bootstrap((x,), np.median, confidence_level=level, n_resamples=RESAMPLES, method="percentile",
+                   rng=np.random.default_rng(0)).confidence_interval
+    return float(ci.low), float(ci.high)
+
+
 def ratio_interval(numerators: Sequence[float], denominators: Sequence[float],
                    level: float = LEVEL) -> tuple[float, float]:
     """The percentile bootstrap interval of sum(numerators) / sum(denominators), resampling their pairs (clusters:

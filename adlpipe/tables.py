@@ -9,11 +9,11 @@ from .stats import interval_cell, paired_difference, paired_success, rate_cell
 FIXED = "@fixed-speed"  # replay's label suffix for a trajectory run at the task's demonstrated speed
 
 
-def error_cell(r: dict, key: str) -> str:
-    """'2.23 [2.05, 2.41]': an error and its 95 % interval; a row evaluated before the figure had an interval prints
-    the figure alone."""
+def error_cell(r: dict, key: str, digits: int = 2) -> str:
+    """'2.23 [2.05, 2.41]': an error (or a latency) and its 95 % interval; a row evaluated before the figure had an
+    interval prints the figure alone."""
     ci = r.get(f"{key}_ci")
-    return interval_cell(r[key], ci, 2) if ci else f"{r[key]:.2f}"
+    return interval_cell(r[key], ci, digits) if ci else f"{r[key]:.{digits}f}"
 
 
 def share_cell(r: dict, key: str) -> str:

@@ -77,7 +77,7 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert np.mean(row["px_per_episode"]) == pytest.approx(row["px"], abs=1e-3)
     assert row["px_ci"][0] < row["px"] < row["px_ci"][1] and row["cm_ci"][0] < row["cm"] < row["cm_ci"][1]
     # and best-of-K, the multimodal tasks' error and mode commitment (resampling scenes) too
-    for key in ("best_of_2_px", "px_multimodal", "commitment"):
+    for key in ("best_of_2_px", "px_multimodal", "commitment", "ms"):
         assert row[f"{key}_ci"][0] <= row[key] <= row[f"{key}_ci"][1], key
     assert row["best_of_2_px"] <= row["px"]
     for dp in ("dp_cnn", "dp_cnn_epsilon"):

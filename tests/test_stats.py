@@ -44,6 +44,22 @@ def test_bootstrap_interval_of_a_mean() -> None:
     assert mean_cell([0.0, 1.0] * 50) == "0.500 [0.400, 0.600]"
 
 
+def test_median_interval_of_repeated_timings() -> None:
+    """Latency is the median of repeated runs; its interval covers the median, shrinks with more repeats and
+    collapses when every run took the same time."""
+    import numpy as np
+
+    from adlpipe.stats import median_interval
+
+    rng = np.random.default_rng(1)
+    few, many = rng.gamma(20, 0.5, 10), rng.gamma(20, 0.5, 400)  # ~10 ms with a right tail, as timings have
+    lo, hi = median_interval(few)
+    assert lo <= np.median(few) <= hi
+    lo2, hi2 = median_interval(many)
+    assert lo2 <= np.median(many) <= hi2 and hi2 - lo2 < hi - lo
+    assert median_interval([4.0, 4.0, 4.0]) == (4.0, 4.0)
+
+
 def test_ratio_interval_resamples_clusters() -> None:
     """A share over clustered samples (K samples per scene) gets an interval over scenes: all-or-nothing scenes
     carry far less information than their sample count, so the interval is wider than a binomial one over samples,

@@ -15,6 +15,12 @@ from .models import Observation, Policy
 def latency_ms(policy: Policy, obs: Observation, steps: int, method: str, repeats: int,
                placement: Placement | None = None) -> float:
     """Median milliseconds of one prediction; the device's queue is drained before each clock read."""
+    return statistics.median(latency_samples_ms(policy, obs, steps, method, repeats, placement))
+
+
+def latency_samples_ms(policy: Policy, obs: Observation, steps: int, method: str, repeats: int,
+                       placement: Placement | None = None) -> list[float]:
+    """Milliseconds of each of `repeats` predictions after a warm-up (for a median and its interval)."""
     placement = placement or Placement()
     gen = placement.generator(0)
     obs = to_device(obs, placement.device)
@@ -28,7 +34,7 @@ def latency_ms(policy: Policy, obs: Observation, steps: int, method: str, repeat
             policy.predict(obs, steps, method, gen)
             synchronize(placement.device)
             times.append((time.perf_counter() - t0) * 1000.0)
-    return statistics.median(times)
+    return times
 
 
 def interleaved_latency_ms(calls: dict[object, tuple[Policy, Observation, int, str]], rounds: int,
