@@ -61,7 +61,7 @@ from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import predict
 from .runtime import Placement, add_device_args
-from .stats import rate_cell, success_interval
+from .stats import median_cell, rate_cell, success_interval
 from .tables import FIXED
 
 
@@ -162,15 +162,15 @@ def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str
              "Failed rollouts per missed part of the predicate (a rollout may miss several); end error: the last "
              "command from the demonstration's end; path: the arm's path length over the demonstration's; still: "
              f"the longest stretch the command moved under {1000 * STILL_M:.0f} mm per waypoint, against the "
-             "demonstration's (medians over the failed rollouts).\n",
+             "demonstration's (medians over the failed rollouts, with their 95 % bootstrap intervals).\n",
              "| policy | failed | " + " | ".join(parts) + " | end error cm | path | still s (demo) |",
              "| --- | ---: |" + " ---: |" * (len(parts) + 3)]
     for label, diags in diagnostics.items():
         bad = [d for name, d in diags.items() if not per_episode[label].get(name, False)]
         counts = " | ".join(str(sum(p in d["failed"] for d in bad)) for p in parts)
-        err = f"{np.median([d['end_error_cm'] for d in bad]):.1f}" if bad else "-"
-        path = f"{np.median([d['path_ratio'] for d in bad]):.2f}" if bad else "-"
-        still = (f"{np.median([d['still_s'] for d in bad]):.1f} ({np.median([d['demo_still_s'] for d in bad]):.1f})"
+        err = median_cell([d["end_error_cm"] for d in bad]) if bad else "-"
+        path = median_cell([d["path_ratio"] for d in bad], 2) if bad else "-"
+        still = (f"{median_cell([d['still_s'] for d in bad])} ({median_cell([d['demo_still_s'] for d in bad])})"
                  if bad else "-")
         lines.append(f"| {label} | {len(bad)} of {len(diags)} | {counts} | {err} | {path} | {still} |")
     return "\n".join(lines) + "\n"

@@ -80,6 +80,11 @@ def median_interval(values: Sequence[float], level: float = LEVEL) -> tuple[floa
     return float(ci.low), float(ci.high)
 
 
+def median_cell(values: Sequence[float], digits: int = 1) -> str:
+    """The median of `values` and its bootstrap interval, as a table cell."""
+    return interval_cell(float(np.median(values)), median_interval(values), digits)
+
+
 def ratio_interval(numerators: Sequence[float], denominators: Sequence[float],
                    level: float = LEVEL) -> tuple[float, float]:
     """The percentile bootstrap interval of sum(numerators) / sum(denominators), resampling their pairs (clusters:

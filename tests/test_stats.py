@@ -169,3 +169,17 @@ def test_seeds_refuse_different_test_splits() -> None:
     b = _details({"fm_cnn": [1.0, 2.0, 3.0]}, {"fm_cnn": [True, False, True]}, True)
     with pytest.raises(AdlError, match="different test splits"):
         summarise([a[0], b[0]], [a[1], b[1]])
+
+
+def test_where_closed_loop_rollouts_fail_carries_intervals() -> None:
+    """The failure-location table's medians (end error, path ratio, still time) print their bootstrap intervals,
+    over the failed rollouts only."""
+    from adlpipe.replay import failure_table
+
+    diags = {f"e{i}": {"failed": ["placed"] if i < 6 else [], "end_error_cm": 10.0 + i, "path_ratio": 0.5,
+                       "still_s": 0.1 * i, "demo_still_s": 0.2} for i in range(8)}
+    per = {"p/Ta-8": {f"e{i}": i >= 6 for i in range(8)}}
+    row = next(x for x in failure_table({"p/Ta-8": diags}, per).splitlines() if x.startswith("| p/Ta-8"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1] == "6 of 8" and cells[6] == "6"  # six failed, each missed the placement
+    assert cells[7].startswith("12.5 [") and cells[8] == "0.50 [0.50, 0.50]" and cells[9].endswith("(0.2 [0.2, 0.2])")
