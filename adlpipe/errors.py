@@ -47,6 +47,11 @@ def read_small_yaml(path: Path, what: str) -> object:
         raise AdlError(f"{path}: cannot read {what}: {' '.join(str(exc).split())[:200]}") from None
 
 
+def one_line(exc: BaseException, limit: int = 100) -> str:
+    """An exception's text on one line, at most `limit` characters (for a message that names it)."""
+    return " ".join(str(exc).split())[:limit]
+
+
 def os_error_message(exc: OSError) -> str:
     """One line for an operating-system error (disk full, permissions, a folder where a file should be)."""
     where = exc.filename or "an output file"

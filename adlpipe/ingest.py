@@ -54,7 +54,7 @@ from .cli import Parser, int_range
 from .dataset import schema, shards
 from .dataset.frames import FrameWriter
 from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, run_cli
+from .errors import AdlError, one_line, run_cli
 from .geometry import matrix_to_quat, resample, scale_intrinsics
 from .lock import exclusive
 
@@ -319,16 +319,13 @@ def _worker(job: tuple) -> tuple[str, list[dict[str, str]], str, str | None]:
         return bag, rows, f"{len(rows)} demonstrations" + (f" ({'; '.join(notes)})" if notes else ""), None
     except AdlError as exc:
         error = str(exc)
-    except OSError as exc:
-        if exc.errno != errno.ENOSPC:
-            error = f"{bag}: cannot ingest (OSError: {' '.join(str(exc).split())[:200]})"
-        else:  # the disk filled while writing: no bag's fault, and no later bag fares better; the run stops
-            Path(out).unlink(missing_ok=True)
-            raise
     except MemoryError:
         error = f"{bag}: out of memory while reading the bag"
     except Exception as exc:  # noqa: BLE001 - one bag's unforeseen failure must not take the batch down
-        error = f"{bag}: cannot ingest ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:  # the disk filled while writing: no bag's
+            Path(out).unlink(missing_ok=True)  # fault, and no later bag fares better; the run stops
+            raise
+        error = f"{bag}: cannot ingest ({type(exc).__name__}: {one_line(exc, 200)})"
     Path(out).unlink(missing_ok=True)
     return bag, [], "", error
 

@@ -177,6 +177,7 @@ _PER_FRAME = {"t": ((), "f"), "rgb": (("S", "S", 3), "u"), "ee_pos": ((3,), "f")
               "gripper": ((), "f"), "state": ((None,), "f"), "action": ((None,), "f"),
               "depth_index": ((), "iu"), "affordance_index": ((), "iu")}
 _IMAGES = {"depth": ("depth_index", "u"), "affordance": ("affordance_index", "f")}
+FRAME_ARRAYS = ("t", "rgb", "ee_pos", "joint_pos", "gripper")  # FrameWriter writes these for every episode
 
 
 def check_frames(fr: h5py.Group, where: str, size: int) -> None:
@@ -184,8 +185,8 @@ def check_frames(fr: h5py.Group, where: str, size: int) -> None:
     so that no reader meets a malformed array; one line naming the array otherwise."""
     if not isinstance(fr, h5py.Group):
         raise AdlError(f"{where}: frames is not a group")
-    missing = [k for k in ("t", "rgb", "ee_pos", "joint_pos", "gripper") if k not in fr]
-    if missing:  # FrameWriter writes these for every episode
+    missing = [k for k in FRAME_ARRAYS if k not in fr]
+    if missing:
         raise AdlError(f"{where}: frames lack {', '.join(missing)}; re-ingest its bag")
     n = fr["t"].shape[0] if fr["t"].ndim == 1 else -1
     for key, (tail, kinds) in _PER_FRAME.items():

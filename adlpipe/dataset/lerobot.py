@@ -250,18 +250,12 @@ class Export:
         return info
 
 
-FRAME_ARRAYS = ("t", "rgb", "ee_pos", "joint_pos", "gripper")
-
-
 def _frames_checked(g: h5py.Group, name: str) -> h5py.Group:
-    """The episode's frames group (its layout was checked when the dataset was opened: frames.check_frames), or one
-    line naming the episode: no frames, a per-frame array export needs is missing, or no frame at all."""
+    """The episode's frames group (its arrays and their layout were checked when the dataset was opened:
+    frames.check_frames), or one line naming the episode: no frames group, or no frame at all."""
     if "frames" not in g or not isinstance(g["frames"], h5py.Group):
         raise AdlError(f"episode {name}: no frames group (ingested without frames?); re-ingest its bag")
     fr = g["frames"]
-    missing = [k for k in FRAME_ARRAYS if k not in fr]
-    if missing:
-        raise AdlError(f"episode {name}: frames lack {', '.join(missing)}")
     if len(fr["t"]) == 0:
         raise AdlError(f"episode {name}: no frames to export")
     return fr

@@ -38,7 +38,7 @@ import h5py
 import numpy as np
 
 from ..camera import PINHOLE, Lens, read_lens
-from ..errors import AdlError
+from ..errors import AdlError, one_line
 from .frames import check_frames
 
 FORMAT_VERSION = 2  # 2: every frame, sharded; 1: the first frame only, one file
@@ -117,7 +117,7 @@ def check_file(f: h5py.File, path: str, n_waypoints: int | None = None, image_si
         try:
             value = int(f.attrs[key])
         except (KeyError, TypeError, ValueError, OverflowError) as exc:
-            raise AdlError(f"{path}: no readable integer '{key}' attribute ({_why(exc)}); not an adlpipe dataset "
+            raise AdlError(f"{path}: no readable integer '{key}' attribute ({one_line(exc)}); not an adlpipe dataset "
                            "or a damaged one") from None
         if value <= 0:
             raise AdlError(f"{path}: {key}={value}; not an adlpipe dataset or a damaged one")
@@ -126,12 +126,9 @@ def check_file(f: h5py.File, path: str, n_waypoints: int | None = None, image_si
 
 
 # What h5py raises when a file's structure is damaged where it reads it (a header, a symbol table, a heap): the
-# open file is readable but the object is not.
-DAMAGED = (KeyError, RuntimeError, ValueError, TypeError, OSError, SystemError)
-
-
-def _why(exc: BaseException) -> str:
-    return " ".join(str(exc).split())[:100]
+# open file is readable but the object is not. DAMAGED adds the OS errors of a file HDF5 cannot open at all.
+DAMAGED_STRUCTURE = (KeyError, RuntimeError, ValueError, TypeError, SystemError)
+DAMAGED = (*DAMAGED_STRUCTURE, OSError)
 
 
 # Episode attributes readers take as one value: name -> numpy dtype kinds (text; bool, integer, float).
@@ -172,7 +169,7 @@ def open_dataset(path: Path | str, names: list[str] | None = None) -> Iterator[h
     except PermissionError:
         raise AdlError(f"{path}: permission denied") from None
     except OSError as exc:
-        raise AdlError(f"{path}: not an HDF5 file ({' '.join(str(exc).split())[:120]})") from None
+        raise AdlError(f"{path}: not an HDF5 file ({one_line(exc, 120)})") from None
     with f:
         try:
             check_file(f, str(path))
@@ -185,8 +182,8 @@ def open_dataset(path: Path | str, names: list[str] | None = None) -> Iterator[h
             files = {n: episode_path(path, f, n) for n in present}  # every link resolved and confined (no file is
             # opened for this) before HDF5 follows any of them
         except DAMAGED as exc:
-            raise AdlError(f"{path}: the dataset's index is damaged ({_why(exc)}); ingest the bags again into a new "
-                           "dataset") from None
+            raise AdlError(f"{path}: the dataset's index is damaged ({one_line(exc)}); ingest the bags again into "
+                           "a new dataset") from None
         for n in wanted:
             check_episode_file(path, f, n, files[n])
         yield f
@@ -198,7 +195,7 @@ def check_episode_file(path: Path, f: h5py.File, name: str, file: Path) -> None:
     try:
         g = f[EPISODES][name]
     except DAMAGED as exc:  # truncated, emptied, not HDF5, unreadable: HDF5 cannot open it
-        raise AdlError(f"{path}: episode {name}: its file {file} cannot be read ({_why(exc)}); re-ingest its bag "
+        raise AdlError(f"{path}: episode {name}: its file {file} cannot be read ({one_line(exc)}); re-ingest its bag "
                        "into a new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
     if Path(g.file.filename).resolve() != file:
         raise AdlError(f"{path}: episode {name}: HDF5 opened {g.file.filename} instead of {file}")
@@ -206,8 +203,8 @@ def check_episode_file(path: Path, f: h5py.File, name: str, file: Path) -> None:
         check_self_contained(g.file, f"{path}: episode {name}")
         check_episode(g, f"{path}:{name}")
     except DAMAGED as exc:
-        raise AdlError(f"{path}: episode {name}: its file {file} is damaged ({_why(exc)}); re-ingest its bag into a "
-                       "new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
+        raise AdlError(f"{path}: episode {name}: its file {file} is damaged ({one_line(exc)}); re-ingest its bag "
+                       "into a new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
 
 
 def readable_episodes(path: Path | str, names: list[str] | None = None) -> tuple[list[str], list[str]]:
@@ -395,7 +392,7 @@ def read_catalog(f: h5py.File) -> list[dict[str, str]]:
                 for k in CATALOG_FIELDS}
         return [dict(zip(CATALOG_FIELDS, row, strict=True)) for row in zip(*cols.values(), strict=True)]
     except DAMAGED as exc:  # a column missing, of another length, or a damaged table
-        raise AdlError(f"{f.filename}: the dataset's catalog cannot be read ({_why(exc)}); ingest the bags again "
+        raise AdlError(f"{f.filename}: the dataset's catalog cannot be read ({one_line(exc)}); ingest the bags again "
                        "into a new dataset") from None
 
 

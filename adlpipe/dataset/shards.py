@@ -40,8 +40,7 @@ def new_run(index: Path, share: tuple[int, int] | None = None) -> tuple[str, Pat
     nothing on the machine that gathers)."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
     if share:
-        host = "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:40]
-        name = f"share-{share[0]:04d}-of-{share[1]:04d}-{stamp}-{host}-{os.getpid()}"
+        name = f"share-{share[0]:04d}-of-{share[1]:04d}-{stamp}-{_host()}-{os.getpid()}"
     else:
         name = f"run-{stamp}-{os.getpid()}"
     tmp = shards_dir(index) / f".{name}.tmp"
@@ -128,8 +127,12 @@ def _writer_gone(run: str) -> bool:
     """Whether the process writing a share's hidden folder has ended: its name ends in -<host>-<pid>; a share of
     another machine is never taken for gone."""
     head, _, pid = run.rpartition("-")
-    host = "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:40]
-    return pid.isdigit() and head.endswith(f"-{host}") and not _alive(int(pid))
+    return pid.isdigit() and head.endswith(f"-{_host()}") and not _alive(int(pid))
+
+
+def _host() -> str:
+    """This machine's name as share folders carry it (letters and digits, at most 40)."""
+    return "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:40]
 
 
 def _share_rows(d: Path, cat: dict) -> list[dict[str, str]]:

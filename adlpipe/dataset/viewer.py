@@ -30,7 +30,7 @@ import rerun.blueprint as rrb
 
 from ..atomic import atomic_path
 from ..camera import project, read_lens
-from ..errors import AdlError
+from ..errors import AdlError, one_line
 from . import schema
 
 EE_COLOR = [250, 200, 40]
@@ -58,26 +58,26 @@ def write_dataset_recording(out: Path, data: Path, names: list[str]) -> int:
     """Record the named episodes of the dataset to `out` (temp file, then renamed); returns the frames logged."""
     try:
         return _write_dataset_recording(out, data, names)
-    except (KeyError, RuntimeError, ValueError, TypeError, SystemError) as exc:  # damage below what opening the
-        # dataset checks (a table deep in a file); OS errors (a full disk) pass as they are
-        raise AdlError(f"{data}: a damaged episode or index ({' '.join(str(exc).split())[:100]}); re-ingest its "
-                       "bags into a new dataset") from None
+    except schema.DAMAGED_STRUCTURE as exc:  # damage below what opening the dataset checks (a table deep in a
+        # file); OS errors (a full disk) pass as they are
+        raise AdlError(f"{data}: a damaged episode or index ({one_line(exc)}); re-ingest its bags into a new "
+                       "dataset") from None
 
 
 def _write_dataset_recording(out: Path, data: Path, names: list[str]) -> int:
-    with schema.open_dataset(data, names) as f:  # Rerun keeps images raw: RGB, depth and the affordance overlay
-        frames = [f[schema.EPISODES][n]["frames"]["rgb"].shape[:3] for n in names]
-    check_recording_space(out, sum(t * h * w * 11 for t, h, w in frames))
-    with atomic_path(out) as tmp:
-        rec = rr.RecordingStream("adlpipe_dataset")
-        rec.save(tmp, default_blueprint=blueprint())
-        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        start, frame = 0.0, 0
-        with schema.open_dataset(data, names) as f:
-            for i, name in enumerate(names):
-                duration, frame = _episode(rec, f[schema.EPISODES][name], i, start, frame)
+    with schema.open_dataset(data, names) as f:
+        eps = [f[schema.EPISODES][n] for n in names]
+        # Rerun keeps images raw: RGB, depth and the affordance overlay, about 11 bytes a pixel
+        check_recording_space(out, sum(int(np.prod(g["frames"]["rgb"].shape[:3])) * 11 for g in eps))
+        with atomic_path(out) as tmp:
+            rec = rr.RecordingStream("adlpipe_dataset")
+            rec.save(tmp, default_blueprint=blueprint())
+            rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+            start, frame = 0.0, 0
+            for i, g in enumerate(eps):
+                duration, frame = _episode(rec, g, i, start, frame)
                 start += duration + GAP_S
-        close_recording(rec, tmp, out)
+            close_recording(rec, tmp, out)
     return frame
 
 
