@@ -82,6 +82,26 @@ def test_frames_compressed_in_threads_are_the_chunks_hdf5_writes(tmp_path: Path)
                 assert d.id.read_direct_chunk(corner)[1] == chunk_bytes(want[i])
 
 
+def _write_frames(path: Path) -> int:
+    with h5py.File(path, "w") as f:
+        w = FrameWriter(f.create_group("ep"), 16)
+        for i in range(20):
+            w.rgb(i / 15, np.full((16, 16, 3), i, np.uint8))
+        w.flush("a bag")
+        return int(f["ep/frames/rgb"][()].sum())
+
+
+def test_a_forked_process_compresses_with_its_own_threads(tmp_path: Path) -> None:
+    """Ingest forks its pool workers, possibly after it has compressed frames itself: a child inherits the
+    compression pool's object but not its threads, and waited forever on it before the pool was reset at fork."""
+    import multiprocessing
+
+    want = _write_frames(tmp_path / "parent.h5")  # the parent's compression threads exist now
+    with multiprocessing.get_context("fork").Pool(2) as pool:
+        got = pool.map_async(_write_frames, [tmp_path / "a.h5", tmp_path / "b.h5"]).get(timeout=120)
+    assert got == [want, want]
+
+
 def test_nearest_index_keeps_to_the_tolerance() -> None:
     ts = np.array([0.0, 0.1, 0.2, 0.5])
     t = np.array([0.01, 0.14, 0.33, 0.5, 0.9])

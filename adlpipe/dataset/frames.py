@@ -57,6 +57,16 @@ def _compressor() -> ThreadPoolExecutor:
     return _pool
 
 
+def _forget_pool() -> None:
+    """A forked process (ingest's pool workers) inherits the pool object but none of its threads: work submitted
+    to it would wait forever, so the child starts its own."""
+    global _pool
+    _pool = None
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
 def chunk_bytes(arr: np.ndarray) -> bytes:
     """One frame's chunk as CODEC stores it: the shuffle filter (bytes grouped by significance; nothing to do for
     one-byte elements), then deflate at level 4. Byte-identical to what HDF5 writes (tests/test_frames.py)."""
