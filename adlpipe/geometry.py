@@ -5,6 +5,7 @@ from __future__ import annotations
 import bisect
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -67,38 +68,47 @@ class TfBuffer:
             ts.append(t)
             self.poses.setdefault(child, []).append(T)
 
-    def _at(self, child: str, t: float) -> np.ndarray:
+    def _at(self, child: str, t: float, interpolate: bool = False) -> np.ndarray:
         if child in self.static:
             return self.static[child]
         ts, ps = self.times[child], self.poses[child]
         i = bisect.bisect_right(ts, t) - 1
-        return ps[max(i, 0)]
+        if not interpolate or i < 0 or i + 1 >= len(ts) or ts[i + 1] <= ts[i]:
+            return ps[max(i, 0)]
+        # between two samples, as tf2 does: translation linear, rotation by slerp
+        w = (t - ts[i]) / (ts[i + 1] - ts[i])
+        a, b = ps[i], ps[i + 1]
+        T = np.eye(4)
+        T[:3, :3] = Slerp([0.0, 1.0], Rotation.from_matrix([a[:3, :3], b[:3, :3]]))(w).as_matrix()
+        T[:3, 3] = (1 - w) * a[:3, 3] + w * b[:3, 3]
+        return T
 
-    def _ancestors(self, frame: str, t: float) -> dict[str, np.ndarray]:
+    def _ancestors(self, frame: str, t: float, interpolate: bool = False) -> dict[str, np.ndarray]:
         """Pose of `frame` in itself and in each of its ancestors up to its root, at time t."""
         out, T = {frame: np.eye(4)}, np.eye(4)
         for _ in range(64):
             if frame not in self.parent:
                 break
-            T = self._at(frame, t) @ T
+            T = self._at(frame, t, interpolate) @ T
             frame = self.parent[frame]
             if frame in out:  # a cycle in a broken tree
                 break
             out[frame] = T
         return out
 
-    def lookup(self, target: str, source: str, t: float) -> np.ndarray | None:
-        """Pose of `source` in `target` at time t (latest sample at or before t), or None if not connected. Any two
-        frames of one tree are connected through their lowest common ancestor (a camera and a robot base both
-        below world, map or odom): up from the source, up from the target, and across."""
-        up = self._ancestors(source, t)
+    def lookup(self, target: str, source: str, t: float, interpolate: bool = False) -> np.ndarray | None:
+        """Pose of `source` in `target` at time t (latest sample at or before t; with `interpolate`, between the
+        samples around t, as tf2 does: a moving camera between its arm's tf messages), or None if not connected.
+        Any two frames of one tree are connected through their lowest common ancestor (a camera and a robot base
+        both below world, map or odom): up from the source, up from the target, and across."""
+        up = self._ancestors(source, t, interpolate)
         T_target, frame = np.eye(4), target  # the target's pose in `frame`
         for _ in range(64):
             if frame in up:
                 return np.linalg.inv(T_target) @ up[frame]
             if frame not in self.parent:
                 return None
-            T_target = self._at(frame, t) @ T_target
+            T_target = self._at(frame, t, interpolate) @ T_target
             frame = self.parent[frame]
         return None
 

@@ -136,7 +136,8 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         if a.ndim != 2:
             raise AdlError(f"{bag}: affordance map on {tm.affordance} must be single channel (32FC1)")
         aff_img = cv2.resize(np.nan_to_num(a), (size, size), interpolation=cv2.INTER_LINEAR)
-    names, poses = object_poses(r, tm, camera_frame)
+    cameras = [other_camera(r, tm, c.name, size, traj3d) for c in tm.extra_cameras]
+    names, poses = object_poses(r, tm, camera_frame, [c.camera_frame for c in cameras])
     n_joints = len(r.joint_names) if r.joint_t else 0
     if n_joints and not np.isfinite(np.asarray(r.joint_pos, float)).all():
         raise AdlError(f"{bag}: non-finite joint positions on {tm.joints}")
@@ -146,9 +147,18 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         gripper = r.joint_names.index(tm.gripper_joint) if tm.gripper_joint in r.joint_names[:n_joints] else None
         frames.finish(r.t_img, t_end, tm.sync_tolerance_s, ee_t, ee_p, joint_t, joint_pos, gripper,
                       f"{bag}: topic {tm.image}", r.series)
-        if frames.reordered:
-            notes.append(f"ordered {frames.reordered} frame(s) logged out of header-stamp order"
-                         + (f", dropped {frames.early} stamped before the first image" if frames.early else ""))
+        for c in cameras:
+            cw = frames.camera(c.name)
+            index = cw.finish_camera(r.t_img, t_end, tm.sync_tolerance_s, frames.kept_t,
+                                     lambda t, c=c: camera_poses(r, tm, c, r.t_img + t), f"{bag}: camera {c.name}")
+            if (index < 0).any():
+                notes.append(f"camera {c.name} has no frame within {tm.sync_tolerance_s} s of {int((index < 0).sum())}"
+                             f" of the {len(index)} frames of camera {tm.camera_name}")
+        for name, w in [(None, frames), *frames.cameras.items()]:
+            if w.reordered:
+                notes.append(f"ordered {w.reordered} frame(s) logged out of header-stamp order"
+                             + (f", dropped {w.early} stamped before the first image" if w.early else "")
+                             + (f" (camera {name})" if name else ""))
     ep = schema.Episode(
         task=task, source_path=str(bag.resolve()), source_sha256=sha or sha256_of(bag), source_format=r.kind,
         duration_s=t_end, stamp0_ns=int(round(r.t_img * 1e9)), base_frame=tm.base_frame, camera_frame=camera_frame,
@@ -158,6 +168,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         objects=np.array(poses).reshape(-1, 7), ee_t=ee_t, ee_pos=ee_p,
         joint_t=joint_t, joint_pos=joint_pos,
         joint_names=r.joint_names if n_joints else [], note="; ".join(notes), segment=segment, lens=lens,
+        camera_name=tm.camera_name, cameras=cameras,
     )
     return ep, ep.note
 
@@ -165,26 +176,57 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
 def camera_model(r: BagReadout, tm: TopicMap) -> tuple[np.ndarray, str, np.ndarray, Lens]:
     """(intrinsics of the recorded image, camera frame, camera pose in the base frame, lens distortion). The lens's
     coefficients act on normalised coordinates: they hold for the resized image too."""
-    h0, w0 = r.image.shape[:2]
-    info = r.info
+    K0, camera_frame, lens = _intrinsics(r, r.info, r.image.shape, r.camera_frame, tm.camera_info, tm.image)
+    return K0, camera_frame, _camera_pose(r, tm, camera_frame, r.t_img, ""), lens
+
+
+def _intrinsics(r: BagReadout, info: object, shape: tuple[int, ...], frame: str, info_topic: str,
+                image_topic: str) -> tuple[np.ndarray, str, Lens]:
+    """(K of the recorded image, camera frame, lens) from a camera's CameraInfo, checked against its image."""
+    h0, w0 = shape[:2]
     try:
         K0 = np.asarray(_field(info, "k", "K"), float).reshape(3, 3)
         width, height = int(info.width), int(info.height)
-        camera_frame = r.camera_frame or str(info.header.frame_id)
+        camera_frame = frame or str(info.header.frame_id)
         lens = lens_from_info(getattr(info, "distortion_model", ""), getattr(info, "d", getattr(info, "D", None)),
-                              f"{r.bag}: topic {tm.camera_info}")
+                              f"{r.bag}: topic {info_topic}")
     except (AttributeError, TypeError, ValueError) as exc:
-        raise AdlError(f"{r.bag}: topic {tm.camera_info}: CameraInfo lacks field {exc} (k, width, height, "
+        raise AdlError(f"{r.bag}: topic {info_topic}: CameraInfo lacks field {exc} (k, width, height, "
                        "header)") from None
     if not np.isfinite(K0).all() or width not in (0, w0) or height not in (0, h0) or K0[0, 0] <= 0 or K0[1, 1] <= 0:
         raise AdlError(f"{r.bag}: camera info ({width}x{height}, fx={K0[0, 0]}) does not match the "
-                       f"{w0}x{h0} image on {tm.image}")
-    T_bc = r.tf.lookup(tm.base_frame, camera_frame.lstrip("/"), r.t_img)
+                       f"{w0}x{h0} image on {image_topic}")
+    return K0, camera_frame, lens
+
+
+def _camera_pose(r: BagReadout, tm: TopicMap, camera_frame: str, t: float, which: str) -> np.ndarray:
+    """A camera's pose in the base frame at t (absolute s), between its tf samples (a wrist camera moves with the
+    arm, and its frames fall between the arm's tf messages)."""
+    T_bc = r.tf.lookup(tm.base_frame, camera_frame.lstrip("/"), t, interpolate=True)
     if T_bc is None:
-        raise AdlError(f"{r.bag}: no tf chain from camera frame {camera_frame!r} to base frame {tm.base_frame!r}")
+        raise AdlError(f"{r.bag}: no tf chain from {which}camera frame {camera_frame!r} to base frame "
+                       f"{tm.base_frame!r}")
     if not np.isfinite(T_bc).all() or np.abs(T_bc[:3, 3]).max() > MAX_COORD_M:
-        raise AdlError(f"{r.bag}: camera pose from tf ({camera_frame} in {tm.base_frame}) is not finite")
-    return K0, camera_frame, T_bc, lens
+        raise AdlError(f"{r.bag}: {which}camera pose from tf ({camera_frame} in {tm.base_frame}) is not finite")
+    return T_bc
+
+
+def other_camera(r: BagReadout, tm: TopicMap, name: str, size: int, traj3d: np.ndarray) -> schema.CameraView:
+    """Another camera of the map: intrinsics at the stored size, lens, pose at the primary camera's first image
+    (a wrist camera's pose is also stored per frame), and the trajectory in its pixels."""
+    cam = next(c for c in tm.extra_cameras if c.name == name)
+    seen = r.cameras[name]
+    K0, frame, lens = _intrinsics(r, seen.info, seen.shape, seen.frame, cam.camera_info, cam.image)
+    K = scale_intrinsics(K0, size / seen.shape[1], size / seen.shape[0])
+    T_bc = _camera_pose(r, tm, frame, r.t_img, f"camera {name}'s ")
+    return schema.CameraView(name=name, camera_frame=frame, K=K, T_base_camera=T_bc,
+                             traj2d=project(traj3d, K, T_bc, lens, (size, size)), lens=lens)
+
+
+def camera_poses(r: BagReadout, tm: TopicMap, cam: schema.CameraView, t: np.ndarray) -> np.ndarray:
+    """A camera's pose in the base frame at each absolute stamp in t (s)."""
+    return np.stack([_camera_pose(r, tm, cam.camera_frame, float(s), f"camera {cam.name}'s ") for s in t]) \
+        if len(t) else np.zeros((0, 4, 4))
 
 
 def end_effector_path(r: BagReadout, tm: TopicMap, allow_gaps: bool) -> tuple[np.ndarray, np.ndarray, float, str]:
@@ -241,9 +283,10 @@ def _synced_image(found: tuple[float, object] | None, topic: str | None, r: BagR
     return found[1]
 
 
-def object_poses(r: BagReadout, tm: TopicMap, camera_frame: str) -> tuple[list[str], list[np.ndarray]]:
+def object_poses(r: BagReadout, tm: TopicMap, camera_frame: str,
+                 other_frames: list[str] = ()) -> tuple[list[str], list[np.ndarray]]:
     """Initial poses of the other frames hanging off the base (objects, manikin), for replay."""
-    skip = {tm.ee_frame, camera_frame.lstrip("/")}
+    skip = {tm.ee_frame, camera_frame.lstrip("/"), *(f.lstrip("/") for f in other_frames)}
     names, poses = [], []
     for child, (t, parent, _T) in sorted(r.first_pose.items()):
         if child in skip or parent != tm.base_frame:

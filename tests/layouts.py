@@ -59,6 +59,31 @@ class Layout:
     smooth: bool = False  # smooth colour gradients instead of noise (what demosaicing and 4:2:2 chroma keep)
     split_s: float | None = None  # ROS1 only: `rosbag record --split`, a new <name>_<k>.bag every split_s seconds
     late_frames: dict[int, float] | None = None  # frame index -> frames it is logged late (its header stamp unchanged)
+    wrist: bool = False  # a second camera on the arm (WRIST), moving with the last moving link, at wrist_hz
+    wrist_hz: float = 15.0
+    wrist_tf: bool = True  # False: the wrist camera's frame is on no tf (a forgotten static transform)
+
+
+# A wrist camera as labs mount one: fixed to the arm's last moving link by /tf_static, its own topics and size.
+WRIST = dict(image="/wrist/color/image_raw", camera_info="/wrist/color/camera_info", depth="/wrist/depth/image_raw",
+             frame="wrist_camera_color_optical_frame", size=(40, 30), offset=(0.0, 0.06, 0.03), fx=30.0)
+
+
+def wrist_image(k: int) -> np.ndarray:
+    """The wrist camera's k-th frame (rgb8)."""
+    width, height = WRIST["size"]
+    return _noise(10_000 + k, height, width)
+
+
+def wrist_pose(t: float, lay: Layout) -> np.ndarray:
+    """The wrist camera's true pose in the robot's base frame at bag time t."""
+    a, b = _moving(_clock(t, lay)[0])
+    return a @ b @ pose_matrix(list(WRIST["offset"]), [1.0, 0, 0, 0])
+
+
+def wrist_K() -> np.ndarray:
+    width, height = WRIST["size"]
+    return np.array([[WRIST["fx"], 0, (width - 1) / 2], [0, WRIST["fx"], (height - 1) / 2], [0, 0, 1]])
 
 
 def _moving(t: float) -> list[np.ndarray]:
@@ -99,6 +124,8 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
         statics[0] = (lay.root, "camera_base", root_cam[:3, 3], matrix_to_quat(root_cam[:3, :3]))
         statics.append((lay.root, robot["base"], root_base[:3, 3], matrix_to_quat(root_base[:3, :3])))
     parent = robot["moving"][-1]
+    if lay.wrist and lay.wrist_tf:
+        statics.append((parent, WRIST["frame"], np.array(WRIST["offset"]), np.array([1.0, 0, 0, 0])))
     for child, dz in robot["static"]:
         statics.append((parent, child, np.array([0.0, 0.0, dz]), np.array([1.0, 0, 0, 0])))
         parent = child
@@ -124,6 +151,17 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
             d = np.full((height, width), 1.5, np.float32) + np.linspace(0, 1, width, dtype=np.float32)
             d[:4] = np.nan  # no return
             events.append(_depth_event(f, lay.depth, cam, tn, d))
+    if lay.wrist:
+        ww, wh = WRIST["size"]
+        for k in range(int(round(total * lay.wrist_hz)) + 1):
+            tn = ns(k / lay.wrist_hz)
+            events.append((tn, 2, WRIST["camera_info"], M.CAMERA_INFO,
+                           lambda tn=tn: f.camera_info(tn, WRIST["frame"], wrist_K(), ww, wh)))
+            events.append((tn, 3, WRIST["image"], M.IMAGE,
+                           lambda tn=tn, k=k: f.image(tn, WRIST["frame"], wrist_image(k), "rgb8")))
+            raw = np.full((wh, ww), 400 + k, np.uint16)  # millimetres
+            events.append((tn, 3, WRIST["depth"], M.IMAGE,
+                           lambda tn=tn, raw=raw: f.image(tn, WRIST["frame"], raw, "16UC1")))
     ee_t, ee_p = [], []
     for k in range(int(round(total * lay.tf_hz)) + 1):  # the moving tf
         t = k / lay.tf_hz
@@ -241,5 +279,11 @@ def topic_map(lay: Layout, **over: object) -> dict:
         depth = cam["depth"] + ("/compressedDepth" if lay.depth.startswith(("compressed", "rvl")) else "")
     out = dict(image=cam["image"], camera_info=cam["camera_info"], depth=depth, affordance=None,
                joints=robot["joints"], task="/task", base_frame=robot["base"], ee_frame=robot["static"][-1][0])
+    if lay.wrist:
+        scene = {"name": "scene", "image": out.pop("image"), "camera_info": out.pop("camera_info")}
+        depth = out.pop("depth")
+        scene.update({"depth": depth} if depth else {})
+        out["cameras"] = [scene, {"name": "wrist", "image": WRIST["image"], "camera_info": WRIST["camera_info"],
+                                  "depth": WRIST["depth"]}]
     out.update(over)
     return out

@@ -28,9 +28,22 @@ TF_TYPES = {"tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"}  # tf/tfMessage: old R
 class FrameSink(Protocol):
     """Takes every image as it is read (adlpipe.dataset.frames.FrameWriter); stamps are header stamps, s."""
 
-    def rgb(self, t: float, image: np.ndarray) -> None: ...
+    def rgb(self, t: float, image: np.ndarray, where: str) -> None: ...
     def depth(self, t: float, metres: np.ndarray) -> None: ...
     def affordance(self, t: float, image: np.ndarray) -> None: ...
+    def camera(self, name: str) -> FrameSink: ...  # the sink of another camera of the episode
+
+
+@dataclass
+class CameraReadout:
+    """What the bag says about one more camera of a multi-camera map: its first frame's size and frame id, and
+    its first CameraInfo (its frames go to the sink's camera(name))."""
+
+    name: str
+    shape: tuple[int, ...] | None = None
+    frame: str = ""
+    t_first: float | None = None
+    info: object | None = None
 
 
 @dataclass
@@ -54,6 +67,7 @@ class BagReadout:
     joint_names: list[str] = field(default_factory=list)
     read: dict[str, int] = field(default_factory=dict)
     series: dict[str, Series] = field(default_factory=dict)  # "state" / "action" -> what its topic carried
+    cameras: dict[str, CameraReadout] = field(default_factory=dict)  # the map's other cameras, by name
 
 
 @dataclass
@@ -123,6 +137,9 @@ class _Nearest:
 
 def check_types(bag: Path, topics: dict, tm: TopicMap) -> None:
     want = {tm.image: IMAGE_TYPES, tm.camera_info: {"sensor_msgs/msg/CameraInfo"},
+            **{c.image: IMAGE_TYPES for c in tm.extra_cameras},
+            **{c.camera_info: {"sensor_msgs/msg/CameraInfo"} for c in tm.extra_cameras},
+            **{c.depth: DEPTH_TYPES for c in tm.extra_cameras if c.depth},
             tm.tf: TF_TYPES, tm.tf_static: TF_TYPES,
             tm.depth: DEPTH_TYPES, tm.affordance: {"sensor_msgs/msg/Image"},
             tm.joints: {"sensor_msgs/msg/JointState"}, tm.task: {"std_msgs/msg/String"},
@@ -175,13 +192,19 @@ def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None
         raise AdlError(f"{bag}: no message could be read on the image topic {tm.image}{span}")
     if state.info is None:
         raise AdlError(f"{bag}: no message on the camera-info topic {tm.camera_info}")
+    for c in tm.extra_cameras:
+        cam = state.cameras[c.name]
+        if cam.shape is None:
+            raise AdlError(f"{bag}: no message could be read on camera {c.name}'s image topic {c.image}")
+        if cam.info is None:
+            raise AdlError(f"{bag}: no message on camera {c.name}'s camera-info topic {c.camera_info}")
     return BagReadout(
         bag=bag, kind=src.kind, topics=topics, image=state.image, t_img=state.t_img,
         camera_frame=state.camera_frame, info=state.info, task=state.task, tf=state.tf,
         depth=state.depth.finish(state.t_img) if tm.depth in topics else None,
         affordance=state.aff.finish(state.t_img) if tm.affordance in topics else None,
         first_pose=state.first_pose, joint_t=state.joint_t, joint_pos=state.joint_pos,
-        joint_names=state.joint_names, read=read, series=state.series)
+        joint_names=state.joint_names, read=read, series=state.series, cameras=state.cameras)
 
 
 class _Streams:
@@ -202,13 +225,18 @@ class _Streams:
         self.joint_pos: list[np.ndarray] = []
         self.joint_names: list[str] = []
         self.series: dict[str, Series] = {}
+        self.cameras = {c.name: CameraReadout(c.name) for c in tm.extra_cameras}
+        self.camera_of = {t: (c.name, role) for c in tm.extra_cameras
+                          for role, t in (("image", c.image), ("info", c.camera_info), ("depth", c.depth)) if t}
 
     def where(self, topic: str) -> str:
         return f"{self.bag}: topic {topic}"
 
     def take(self, topic: str, decode: object) -> None:
         tm = self.tm
-        if topic == tm.image:
+        if topic in self.camera_of:
+            self._other_camera(topic, decode)
+        elif topic == tm.image:
             if self.image is None or self.sink:
                 msg = decode()
                 image, t = as_rgb8(decode_image(msg, self.where(topic)), self.where(topic)), stamp_s(msg)
@@ -248,6 +276,32 @@ class _Streams:
         if topic in (tm.state, tm.action):  # may also be the joints topic
             key = "state" if topic == tm.state else "action"
             self.series.setdefault(key, Series()).add(decode(), self.where(topic))
+
+    def _other_camera(self, topic: str, decode: object) -> None:
+        """A message of another camera of the map: its info, its first frame's size and frame id, and (with a
+        sink) every frame and depth image, into that camera's own sink."""
+        name, role = self.camera_of[topic]
+        cam, where = self.cameras[name], self.where(topic)
+        if role == "info":
+            if cam.info is None:
+                cam.info = decode()
+            return
+        if not self.sink and (role == "depth" or cam.shape is not None):
+            return
+        msg = decode()
+        t = stamp_s(msg)
+        if role == "depth":
+            self.sink.camera(name).depth(t, decode_depth(msg, where))
+            return
+        image = as_rgb8(decode_image(msg, where), where)
+        if cam.shape is None:
+            cam.shape, cam.t_first = image.shape, t
+            cam.frame = check_name(str(msg.header.frame_id), "frame", where)
+        elif image.shape[:2] != cam.shape[:2]:
+            raise AdlError(f"{where}: image size changes from {cam.shape[1]}x{cam.shape[0]} to "
+                           f"{image.shape[1]}x{image.shape[0]} within the bag")
+        if self.sink:
+            self.sink.camera(name).rgb(t, image, where)
 
     def _to_sink(self, topic: str, t: float, msg: object) -> None:
         where = self.where(topic)

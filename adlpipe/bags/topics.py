@@ -3,6 +3,7 @@ them for their robot with a YAML file (`--config topics.yaml`, same keys)."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -38,6 +39,10 @@ class TopicMap:
     segment_gripper_joint: str | None = None  # also require this joint (the gripper) to be still
     segment_gripper_rate: float = 0.01  # joint units per second
     segment_min_s: float = 1.0  # shorter active stretches are not demonstrations
+    # Several cameras (a scene camera and a wrist camera): a list of {name, image, camera_info, depth (optional)}.
+    # The first is the primary camera: it takes the place of image/camera_info/depth above (the episode's own
+    # layout); every other one is stored under cameras/<name>/ of the episode. Null: one camera, named "camera".
+    cameras: list | None = None
 
     @classmethod
     def load(cls, paths: str | Path | list | None) -> TopicMap:
@@ -45,9 +50,13 @@ class TopicMap:
         if paths is None or paths == []:
             return cls()
         merged: dict = {}
-        for path in paths if isinstance(paths, list | tuple) else [paths]:
+        paths = paths if isinstance(paths, list | tuple) else [paths]
+        for path in paths:
             merged.update(cls._read(path))
-        return cls(**merged)
+        try:
+            return cls(**merged)
+        except AdlError as exc:
+            raise AdlError(f"{', '.join(map(str, paths))}: {exc}") from None
 
     @classmethod
     def _read(cls, path: str | Path) -> dict:
@@ -61,21 +70,86 @@ class TopicMap:
         for f in fields(cls):
             if f.name in raw:
                 _check_value(path, f.name, raw[f.name], f.type)
+        both = sorted({"image", "camera_info", "depth"} & set(raw)) if raw.get("cameras") is not None else []
+        if both:
+            raise AdlError(f"{path}: give the cameras either as image/camera_info/depth or as a cameras list, not "
+                           f"both ({', '.join(both)} beside cameras)")
         return raw
 
     def __post_init__(self) -> None:
+        if self.cameras is not None:
+            cams = [_camera_entry(c, k) for k, c in enumerate(self.cameras)]
+            if not cams:
+                raise AdlError("topic map: cameras is an empty list; name at least one camera, or leave it out")
+            names = [c.name for c in cams]
+            if len(set(names)) < len(names):
+                raise AdlError(f"topic map: camera names repeat in cameras ({names}); give each its own name")
+            topics = [t for c in cams for t in (c.image, c.camera_info, c.depth) if t]
+            if len(set(topics)) < len(topics):
+                raise AdlError("topic map: two cameras share a topic in cameras; each needs its own image, "
+                               "camera_info and depth topics")
+            object.__setattr__(self, "cameras", cams)
+            first = cams[0]
+            for key in ("image", "camera_info", "depth"):
+                object.__setattr__(self, key, getattr(first, key))
         if not self.image or not self.camera_info or not self.tf:
             raise AdlError("topic map: image, camera_info and tf are required and cannot be null")
+
+    @property
+    def camera_name(self) -> str:
+        """The primary camera's name (the first of `cameras`; "camera" for a one-camera map)."""
+        return self.cameras[0].name if self.cameras else PRIMARY_CAMERA
+
+    @property
+    def extra_cameras(self) -> list[CameraTopics]:
+        """The cameras stored beside the primary one, under cameras/<name>/ of each episode."""
+        return list(self.cameras[1:]) if self.cameras else []
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     def required_topics(self) -> list[str]:
-        return [self.image, self.camera_info, self.tf]
+        return [self.image, self.camera_info, self.tf] + [t for c in self.extra_cameras
+                                                          for t in (c.image, c.camera_info)]
 
     def optional_topics(self) -> list[str]:
         return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static, self.state,
-                            self.action) if t]
+                            self.action, *(c.depth for c in self.extra_cameras)) if t]
+
+
+PRIMARY_CAMERA = "camera"
+
+
+@dataclass(frozen=True)
+class CameraTopics:
+    """One camera of a multi-camera topic map."""
+
+    name: str
+    image: str
+    camera_info: str
+    depth: str | None = None
+
+
+def _camera_entry(entry: object, k: int) -> CameraTopics:
+    """One item of the topic map's `cameras` list, checked: one line naming the camera and the key otherwise."""
+    if isinstance(entry, CameraTopics):
+        return entry
+    where = f"topic map: cameras[{k}]"
+    if not isinstance(entry, dict):
+        raise AdlError(f"{where} must be a mapping with name, image, camera_info and optional depth")
+    known = {f.name for f in fields(CameraTopics)}
+    unknown = sorted(set(entry) - known)
+    if unknown:
+        raise AdlError(f"{where}: unknown keys {unknown}; known keys: {sorted(known)}")
+    for key in ("name", "image", "camera_info"):
+        if key not in entry:
+            raise AdlError(f"{where}: key {key!r} is required")
+    for key, value in entry.items():
+        _check_value(where, key, value, "str | None" if key == "depth" else "str")
+    if not re.fullmatch(r"[A-Za-z0-9_]{1,40}", entry["name"]):
+        raise AdlError(f"{where}: name {entry['name']!r} must be 1-40 letters, digits or '_' (it names a group and "
+                       "a LeRobot key)")
+    return CameraTopics(**entry)
 
 
 def _check_value(path: object, key: str, value: object, annotation: str) -> None:
@@ -84,6 +158,10 @@ def _check_value(path: object, key: str, value: object, annotation: str) -> None
     if value is None:
         if not optional:
             raise AdlError(f"{path}: topic-map key {key!r} cannot be null")
+        return
+    if key == "cameras":
+        if not isinstance(value, list):
+            raise AdlError(f"{path}: topic-map key 'cameras' must be a list of cameras, got {value!r}")
         return
     if "float" in str(annotation):
         if isinstance(value, bool) or not isinstance(value, int | float) or not value == value or value < 0:

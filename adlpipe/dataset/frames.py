@@ -25,6 +25,7 @@ import heapq
 import os
 import zlib
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import cv2
@@ -34,6 +35,7 @@ import numpy as np
 from ..errors import AdlError
 
 FRAMES = "frames"
+CAMERAS = "cameras"  # an episode's other cameras: cameras/<name>/frames/{t, rgb, T_base_camera, index, depth...}
 # Chosen in bench/frame_storage.py: built into every HDF5 (no plugin for readers), 4x smaller than raw RGB at 128 px,
 # ~15,000 random frame reads/s in one process.
 CODEC = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
@@ -79,7 +81,10 @@ class FrameWriter:
     """Appends resized frames of one episode to `group/frames` as they are read from the bag."""
 
     def __init__(self, group: h5py.Group, size: int) -> None:
+        self.group = group
         self.g = group.require_group(FRAMES)
+        self.cameras: dict[str, FrameWriter] = {}  # the episode's other cameras (under cameras/<name>/)
+        self.kept_t = np.zeros(0)  # the kept frames' stamps, s from the first image (set by finish)
         self.size = size
         self.t: dict[str, list[float]] = {"rgb": [], "depth": [], "affordance": []}  # stamps of what is written
         self._pending: list[tuple[float, int, np.ndarray]] = []  # (stamp, arrival, resized rgb): the look-ahead
@@ -131,6 +136,12 @@ class FrameWriter:
         while self._compressing:
             self._write_compressed()
 
+    def camera(self, name: str) -> FrameWriter:
+        """The writer of another camera of the episode: its frames go to cameras/<name>/frames."""
+        if name not in self.cameras:
+            self.cameras[name] = FrameWriter(self.group.require_group(f"{CAMERAS}/{name}"), self.size)
+        return self.cameras[name]
+
     def depth(self, t: float, metres: np.ndarray) -> None:
         d = cv2.resize(metres.astype(np.float32), (self.size, self.size), interpolation=cv2.INTER_NEAREST)
         m = np.clip(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0), 0.0, DEPTH_MM_MAX / 1000.0)
@@ -146,19 +157,8 @@ class FrameWriter:
         """Make stamps relative to the first image (t0, absolute s), drop frames after the path's end, and sync the
         end effector, joints, state and action (series: name -> Series), depth and affordance to each kept frame.
         Returns the number of frames."""
-        self.flush(where)
-        t = np.asarray(self.t["rgb"], float) - t0
-        # a frame stamped before the episode's first image (logged after it) precedes the episode: not kept
-        first = int(np.searchsorted(t, 0.0, side="left"))
-        keep = int(np.searchsorted(t, t_end + tolerance, side="right"))
-        rgb = self.g["rgb"]
-        for i in range(keep - first if first else 0):  # one frame at a time: memory flat
-            rgb[i] = rgb[i + first]
-        self.g["rgb"].resize(keep - first, axis=0)
-        t = t[first:keep]
-        keep -= first
-        self.early = first
-        self.g.create_dataset("t", data=t)
+        t = self.kept_t = self._trim(t0, t_end, tolerance, where)
+        keep = len(t)
         self.g.create_dataset("ee_pos", data=np.stack([np.interp(t, ee_t, ee_pos[:, k]) for k in range(3)], 1)
                               .astype(np.float32))
         self.g.create_dataset("joint_pos", data=_nearest_rows(t, joint_t, joint_pos, tolerance).astype(np.float32))
@@ -172,13 +172,47 @@ class FrameWriter:
             d.attrs["names"] = list(s.names)
             self.g.create_dataset(f"{key}_stream_t", data=np.asarray(s.t, float) - t0)
             self.g.create_dataset(f"{key}_stream", data=rows.astype(np.float32))
-        for key in ("depth", "affordance"):
+        self._sync_images(t, t0, tolerance, ("depth", "affordance"))
+        return keep
+
+    def _trim(self, t0: float, t_end: float, tolerance: float, where: str) -> np.ndarray:
+        """Write what is held, keep the frames from the first image (t0, absolute s) to the path's end and store
+        their stamps relative to t0 (frames/t); returns them."""
+        self.flush(where)
+        t = np.asarray(self.t["rgb"], float) - t0
+        # a frame stamped before the episode's first image (logged after it) precedes the episode: not kept
+        first = int(np.searchsorted(t, 0.0, side="left"))
+        keep = int(np.searchsorted(t, t_end + tolerance, side="right"))
+        if "rgb" in self.g:
+            rgb = self.g["rgb"]
+            for i in range(keep - first if first else 0):  # one frame at a time: memory flat
+                rgb[i] = rgb[i + first]
+            rgb.resize(keep - first, axis=0)
+        t = t[first:keep]
+        self.early = first
+        self.g.create_dataset("t", data=t)
+        return t
+
+    def _sync_images(self, t: np.ndarray, t0: float, tolerance: float, keys: tuple[str, ...]) -> None:
+        for key in keys:
             ts = np.asarray(self.t[key], float) - t0
             self.g.create_dataset(f"{key}_t", data=ts)
             latest = key == "affordance"  # a map published once (or slowly) holds until the next one
             self.g.create_dataset(f"{key}_index", data=nearest_index(t, ts, tolerance, latest).astype(np.int32))
         self.g.attrs["sync_tolerance_s"] = tolerance
-        return keep
+
+    def finish_camera(self, t0: float, t_end: float, tolerance: float, primary_t: np.ndarray,
+                      poses: Callable[[np.ndarray], np.ndarray], where: str) -> np.ndarray:
+        """Another camera's frames, kept over the same span as the primary camera's: their stamps, their depth
+        images synced to them, the camera's pose at each (poses: relative stamps -> (n, 4, 4); a wrist camera
+        moves with the arm) and, per primary frame, this camera's nearest frame within the tolerance (index, -1:
+        none). Returns index."""
+        t = self._trim(t0, t_end, tolerance, where)
+        self._sync_images(t, t0, tolerance, ("depth",))
+        self.g.create_dataset("T_base_camera", data=poses(t).astype(np.float64).reshape(len(t), 4, 4))
+        index = nearest_index(primary_t, t, tolerance).astype(np.int32)
+        self.g.create_dataset("index", data=index)
+        return index
 
 
 # The per-frame arrays FrameWriter writes: key -> (shape after the frame axis, given the image size S; dtype kinds).
@@ -226,6 +260,30 @@ def check_frames(fr: h5py.Group, where: str, size: int) -> None:
     t = fr["t"][()]
     if not np.isfinite(t).all() or np.any(np.diff(t) < 0):
         raise AdlError(f"{where}: frame stamps are not finite or go backwards; re-ingest its bag")
+
+
+def check_camera_frames(fr: h5py.Group | None, where: str, size: int, n_primary: int) -> None:
+    """Another camera's frames as finish_camera writes them: its own stamps, frames and poses, depth indices in
+    range, and an index per primary frame into its frames; one line naming the array otherwise."""
+    if not isinstance(fr, h5py.Group) or not all(k in fr for k in ("t", "rgb", "T_base_camera", "index")):
+        raise AdlError(f"{where}: frames lack t, rgb, T_base_camera or index; re-ingest its bag")
+    n = fr["t"].shape[0] if fr["t"].ndim == 1 else -1
+    shapes = {"rgb": (n, size, size, 3), "T_base_camera": (n, 4, 4), "index": (n_primary,)}
+    for key, shape in shapes.items():
+        if not isinstance(fr[key], h5py.Dataset) or fr[key].shape != shape:
+            raise AdlError(f"{where}: frames/{key} is {getattr(fr[key], 'shape', 'a group')}, expected {shape}; "
+                           "re-ingest its bag")
+    index = fr["index"][()]
+    if index.size and (index.min() < -1 or index.max() >= n):
+        raise AdlError(f"{where}: frames/index points outside its frames; re-ingest its bag")
+    t = fr["t"][()]
+    if not np.isfinite(t).all() or np.any(np.diff(t) < 0) or not np.isfinite(fr["T_base_camera"][()]).all():
+        raise AdlError(f"{where}: frame stamps or poses are not finite, or stamps go backwards; re-ingest its bag")
+    if "depth" in fr:
+        d, i = fr["depth"], fr.get("depth_index")
+        if d.ndim != 3 or d.shape[1:] != (size, size) or i is None or i.shape != (n,) or (
+                i.size and (i[()].min() < -1 or i[()].max() >= len(d))):
+            raise AdlError(f"{where}: frames/depth or frames/depth_index malformed; re-ingest its bag")
 
 
 def nearest_index(t: np.ndarray, ts: np.ndarray, tolerance: float, or_latest: bool = False) -> np.ndarray:

@@ -23,6 +23,10 @@ per bag, one run folder per ingest: adlpipe.dataset.shards). The index links eac
         series/ee_t  (P,) float64 s from the first image; series/ee_pos (P, 3) base_frame
         series/joint_t (Q,) float64; series/joint_pos (Q, J) float64; attr joint_names
         frames/...   every camera frame, synced (adlpipe.dataset.frames)
+        cameras/<name>/  the topic map's other cameras (a wrist camera beside the scene camera); attrs
+                     camera_frame, distortion_model; K, D, T_base_camera (at the first image), traj2d (traj3d
+                     seen by this camera, through its lens); frames/ its own frames (adlpipe.dataset.frames)
+        attr camera_name: the name of the camera stored at the top level ("camera" for a one-camera map)
 """
 
 from __future__ import annotations
@@ -39,10 +43,22 @@ import numpy as np
 
 from ..camera import PINHOLE, Lens, read_lens
 from ..errors import AdlError, one_line
-from .frames import check_frames
+from .frames import CAMERAS, check_camera_frames, check_frames
 
 FORMAT_VERSION = 2  # 2: every frame, sharded; 1: the first frame only, one file
 EPISODES = "episodes"
+
+
+@dataclass
+class CameraView:
+    """One more camera of an episode: its model, its pose at the first image and the trajectory as it sees it."""
+
+    name: str
+    camera_frame: str
+    K: np.ndarray
+    T_base_camera: np.ndarray
+    traj2d: np.ndarray
+    lens: Lens = PINHOLE
 
 
 @dataclass
@@ -73,6 +89,8 @@ class Episode:
     note: str = ""  # e.g. what a --recover ingest of a truncated bag lost
     segment: int = -1  # the demonstration's index in a bag holding several; -1: the whole bag
     lens: Lens = PINHOLE  # the camera's distortion (CameraInfo's model and d): traj2d is where points appear
+    camera_name: str = "camera"  # the topic map's name for the camera above
+    cameras: list[CameraView] = field(default_factory=list)  # the map's other cameras
 
     @property
     def name(self) -> str:
@@ -318,6 +336,25 @@ def check_episode(g: h5py.Group, where: str) -> None:
         raise AdlError(f"{where}: traj3d/traj2d shapes {t3.shape}/{t2.shape}, expected (N, 3)/(N, 2)")
     if not (np.isfinite(t3[()]).all() and np.isfinite(t2[()]).all()):
         raise AdlError(f"{where}: non-finite values (NaN or inf) in the stored trajectory; re-ingest the bag")
+    if CAMERAS in g:
+        n_frames = g["frames"]["t"].shape[0] if "frames" in g else None
+        for name in g[CAMERAS]:
+            _check_camera(g[CAMERAS][name], f"{where}: camera {name}", h, t3.shape[0], n_frames)
+
+
+def _check_camera(c: h5py.Group, where: str, size: int, n_waypoints: int, n_frames: int | None) -> None:
+    """Another camera's group laid out as ingest writes it; one line naming the camera and the array otherwise."""
+    want = {"K": (3, 3), "T_base_camera": (4, 4), "traj2d": (n_waypoints, 2), "D": None}
+    for key, shape in want.items():
+        d = c.get(key) if isinstance(c, h5py.Group) else None
+        if not isinstance(d, h5py.Dataset) or (shape is not None and d.shape != shape) or d.dtype.kind != "f":
+            raise AdlError(f"{where}: lacks a {shape or '1-D'} float '{key}' dataset; re-ingest its bag")
+        if not np.isfinite(d[()]).all():
+            raise AdlError(f"{where}: non-finite values in '{key}'; re-ingest its bag")
+    if "camera_frame" not in c.attrs:
+        raise AdlError(f"{where}: no 'camera_frame' attribute; re-ingest its bag")
+    if n_frames is not None:
+        check_camera_frames(c.get("frames"), where, size, n_frames)
 
 
 def write_episode(g: h5py.Group, ep: Episode) -> None:
@@ -350,6 +387,28 @@ def write_episode(g: h5py.Group, ep: Episode) -> None:
     s.create_dataset("joint_t", data=ep.joint_t.astype(np.float64))
     jp = s.create_dataset("joint_pos", data=ep.joint_pos.astype(np.float64))
     jp.attrs["joint_names"] = [str(n) for n in ep.joint_names]
+    g.attrs["camera_name"] = ep.camera_name
+    for cam in ep.cameras:
+        c = g.require_group(f"{CAMERAS}/{cam.name}")
+        c.attrs["camera_frame"] = cam.camera_frame
+        c.attrs["distortion_model"] = cam.lens.model
+        c.create_dataset("K", data=cam.K.astype(np.float64))
+        c.create_dataset("D", data=cam.lens.array().astype(np.float64))
+        c.create_dataset("T_base_camera", data=cam.T_base_camera.astype(np.float64))
+        c.create_dataset("traj2d", data=cam.traj2d.astype(np.float32))
+
+
+def camera_names(g: h5py.Group) -> list[str]:
+    """Every camera of an episode group: the top-level one first, then cameras/<name> in name order."""
+    return [str(g.attrs.get("camera_name", "camera")), *(sorted(g[CAMERAS]) if CAMERAS in g else [])]
+
+
+def read_camera(g: h5py.Group, name: str) -> CameraView:
+    """The model, first-frame pose and trajectory pixels of any camera of an episode group, the top-level one
+    included."""
+    c = g if name == camera_names(g)[0] else g[CAMERAS][name]
+    return CameraView(name=name, camera_frame=str(c.attrs["camera_frame"]), K=c["K"][()],
+                      T_base_camera=c["T_base_camera"][()], traj2d=c["traj2d"][()], lens=read_lens(c))
 
 
 def read_episode(f: h5py.File, name: str) -> Episode:
@@ -366,7 +425,8 @@ def read_episode(f: h5py.File, name: str) -> Episode:
         object_names=[str(n) for n in g["objects"].attrs["names"]], objects=g["objects"][()],
         ee_t=s["ee_t"][()], ee_pos=s["ee_pos"][()], joint_t=s["joint_t"][()], joint_pos=s["joint_pos"][()],
         joint_names=[str(n) for n in s["joint_pos"].attrs["joint_names"]], note=str(a.get("note", "")),
-        segment=int(a.get("segment", -1)), lens=read_lens(g),
+        segment=int(a.get("segment", -1)), lens=read_lens(g), camera_name=str(a.get("camera_name", "camera")),
+        cameras=[read_camera(g, n) for n in camera_names(g)[1:]],
     )
 
 

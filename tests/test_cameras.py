@@ -1,0 +1,122 @@
+"""Several cameras per episode (issue P.3): a scene camera and a wrist camera moving with the arm, recorded into one
+bag with the real writers (mcap, rosbags); each camera's frames, model, pose per frame and trajectory pixels."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+import yaml
+from conftest import one_line_error, run_module
+from layouts import WRIST, Layout, topic_map, wrist_image, wrist_K, wrist_pose, write_layout_bag
+
+from adlpipe.bags.topics import TopicMap
+from adlpipe.dataset import schema
+from adlpipe.errors import AdlError
+from adlpipe.geometry import in_camera, scale_intrinsics
+from adlpipe.ingest import ingest
+
+SIZE = 48
+NAMES = {"mcap": "c.mcap", "bag": "c.bag", "db3": "c"}
+
+
+def _map(tmp_path: Path, lay: Layout, **over: object) -> Path:
+    cfg = tmp_path / "map.yaml"
+    cfg.write_text(yaml.safe_dump(topic_map(lay, **over)))
+    return cfg
+
+
+def _two_camera_dataset(tmp_path: Path, fmt: str) -> tuple[Path, Path, Layout]:
+    lay = Layout(fmt=fmt, wrist=True)
+    bag, _t, _p = write_layout_bag(tmp_path / NAMES[fmt], lay)
+    out = tmp_path / "two.h5"
+    c = ingest([bag], out, TopicMap.load(_map(tmp_path, lay)), n_waypoints=32, size=SIZE)
+    assert c["new"] == 1, c
+    return bag, out, lay
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "bag", "db3"])
+def test_a_scene_and_a_wrist_camera_in_one_episode(tmp_path: Path, fmt: str) -> None:
+    bag, out, lay = _two_camera_dataset(tmp_path, fmt)
+    one = tmp_path / "one.h5"  # the same bag through a one-camera map: the wrist's topics are not read
+    assert ingest([bag], one, TopicMap.load(_map(tmp_path, Layout(fmt=fmt))), n_waypoints=32, size=SIZE)["new"] == 1
+    with h5py.File(out) as f, h5py.File(one) as g1:
+        name = schema.episode_names(f)[0]
+        g, s = f["episodes"][name], g1["episodes"][name]
+        assert schema.camera_names(g) == ["scene", "wrist"] and schema.camera_names(s) == ["camera"]
+        # the scene camera is stored exactly as a one-camera ingest stores it
+        for key in ("rgb", "traj2d", "traj3d", "K", "T_base_camera", "frames/rgb", "frames/t", "frames/ee_pos"):
+            assert np.array_equal(g[key][()], s[key][()]), key
+        ep = schema.read_episode(f, name)
+        wrist = ep.cameras[0]
+        assert wrist.name == "wrist" and wrist.camera_frame == WRIST["frame"]
+        fr = g["cameras/wrist/frames"]
+        t = fr["t"][()]
+        k = np.round(t * lay.wrist_hz).astype(int)
+        assert np.allclose(t, k / lay.wrist_hz, atol=1e-6) and len(t) >= 40
+        assert k[0] == 0 and np.all(np.diff(k) == 1)  # every wrist frame from the first image to the path's end
+        for i in (0, len(t) // 2, len(t) - 1):  # its own frames, resized as the scene camera's are
+            want = cv2.resize(wrist_image(int(k[i])), (SIZE, SIZE), interpolation=cv2.INTER_AREA)
+            assert np.array_equal(fr["rgb"][i], want), i
+        # it moves with the arm: its pose per frame is the true wrist pose (tf interpolated at 50 Hz)
+        truth = np.stack([wrist_pose(float(x), lay) for x in t])
+        assert np.abs(fr["T_base_camera"][()] - truth).max() < 1e-3
+        assert np.linalg.norm(truth[-1, :3, 3] - truth[0, :3, 3]) > 0.1
+        # per scene frame, the wrist frame nearest in time (10 Hz against 15 Hz)
+        scene_t = g["frames/t"][()]
+        index = fr["index"][()]
+        assert np.all(index >= 0) and np.abs(t[index] - scene_t).max() <= 1 / (2 * lay.wrist_hz) + 1e-6
+        # its depth, synced to its own frames
+        assert np.array_equal(fr["depth"][fr["depth_index"][()]][:, 0, 0], 400 + k)
+        # the trajectory in the wrist camera's pixels, against OpenCV at its first-frame pose
+        K = scale_intrinsics(wrist_K(), SIZE / WRIST["size"][0], SIZE / WRIST["size"][1])
+        pc = in_camera(ep.traj3d.astype(float), wrist_pose(0.0, lay))
+        want, _ = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), K, np.zeros(5))
+        assert np.abs(wrist.traj2d - want.reshape(-1, 2)).max() < 1e-3
+        assert np.allclose(wrist.K, K)
+
+
+def test_a_missing_camera_topic_is_one_line(tmp_path: Path) -> None:
+    lay = Layout(wrist=False)
+    bag, _t, _p = write_layout_bag(tmp_path / "c.mcap", lay)
+    cfg = _map(tmp_path, Layout(wrist=True))
+    with pytest.raises(AdlError, match="missing required topic.*/wrist/color/image_raw"):
+        ingest([bag], tmp_path / "x.h5", TopicMap.load(cfg), size=SIZE)
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_a_camera_without_tf_is_one_line(tmp_path: Path) -> None:
+    lay = Layout(wrist=True, wrist_tf=False)
+    bag, _t, _p = write_layout_bag(tmp_path / "c.mcap", lay)
+    out = one_line_error(run_module("ingest", str(bag), "-o", str(tmp_path / "x.h5"), "--config",
+                                    str(_map(tmp_path, lay)), "--size", str(SIZE), "--workers", "1"))
+    assert f"no tf chain from camera wrist's camera frame '{WRIST['frame']}'" in out, out
+    assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize(("cameras", "needle"), [
+    ([], "empty list"),
+    ([{"name": "a b", "image": "/a", "camera_info": "/b"}], "letters, digits"),
+    ([{"name": "a", "image": "/a"}], "'camera_info' is required"),
+    ([{"name": "a", "image": "/a", "camera_info": "/b"}, {"name": "a", "image": "/c", "camera_info": "/d"}],
+     "names repeat"),
+    ([{"name": "a", "image": "/a", "camera_info": "/b"}, {"name": "b", "image": "/a", "camera_info": "/d"}],
+     "share a topic"),
+    ("scene", "must be a list"),
+])
+def test_a_bad_cameras_list_is_one_line(tmp_path: Path, cameras: object, needle: str) -> None:
+    cfg = tmp_path / "map.yaml"
+    cfg.write_text(yaml.safe_dump({"cameras": cameras}))
+    with pytest.raises(AdlError, match=needle) as e:
+        TopicMap.load(cfg)
+    assert str(cfg) in str(e.value)
+
+
+def test_cameras_and_image_keys_together_are_refused(tmp_path: Path) -> None:
+    cfg = tmp_path / "map.yaml"
+    cfg.write_text(yaml.safe_dump({"image": "/x", "cameras": [{"name": "a", "image": "/a", "camera_info": "/b"}]}))
+    with pytest.raises(AdlError, match="not both"):
+        TopicMap.load(cfg)
