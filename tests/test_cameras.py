@@ -120,3 +120,50 @@ def test_cameras_and_image_keys_together_are_refused(tmp_path: Path) -> None:
     cfg.write_text(yaml.safe_dump({"image": "/x", "cameras": [{"name": "a", "image": "/a", "camera_info": "/b"}]}))
     with pytest.raises(AdlError, match="not both"):
         TopicMap.load(cfg)
+
+
+@pytest.fixture(scope="module")
+def two_cameras(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _two_camera_dataset(tmp_path_factory.mktemp("two"), "mcap")[1]
+
+
+def test_the_lerobot_export_has_one_image_key_per_camera(two_cameras: Path, tmp_path: Path) -> None:
+    import json
+
+    import pyarrow.parquet as pq
+
+    from adlpipe.export import export_lerobot
+
+    export_lerobot(two_cameras, tmp_path / "le")
+    info = json.loads((tmp_path / "le" / "meta" / "info.json").read_text())
+    images = sorted(k for k, v in info["features"].items() if v["dtype"] == "image")
+    assert images == ["observation.images.depth", "observation.images.scene", "observation.images.wrist"]
+    data = pq.read_table(tmp_path / "le" / "data" / "chunk-000" / "file-000.parquet")
+    with h5py.File(two_cameras) as f:
+        g = f["episodes"][schema.episode_names(f)[0]]
+        index = g["cameras/wrist/frames/index"][()]
+        for i in (0, 7, len(index) - 1):  # frame i: the scene frame and the wrist frame nearest it, lossless
+            for key, want in (("scene", g["frames/rgb"][i]), ("wrist", g["cameras/wrist/frames/rgb"][index[i]])):
+                png = data.column(f"observation.images.{key}")[i].as_py()["bytes"]
+                got = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)[..., ::-1]
+                assert np.array_equal(got, want), (key, i)
+    stats = json.loads((tmp_path / "le" / "meta" / "stats.json").read_text())
+    assert "observation.images.wrist" in stats
+
+
+def test_the_dataset_viewer_shows_each_camera(two_cameras: Path, tmp_path: Path) -> None:
+    from test_viewer import rows_and_values
+
+    with h5py.File(two_cameras) as f:
+        g = f["episodes"][schema.episode_names(f)[0]]
+        n_scene, n_wrist = len(g["frames/t"]), len(g["cameras/wrist/frames/t"])
+        poses = g["cameras/wrist/frames/T_base_camera"][()]
+    rrd = tmp_path / "two.rrd"
+    run_module("inspect", "--dataset", "--data", two_cameras, "-o", rrd, check=True)
+    rows, _values, blueprints = rows_and_values(rrd)
+    assert rows["/world/camera/image/rgb"] == n_scene
+    # the wrist camera's own frames, and its pose at each (it moves with the arm)
+    assert rows["/world/cameras/wrist/image/rgb"] == rows["/world/cameras/wrist"] == n_wrist != n_scene
+    assert rows["/world/cameras/wrist/image/ee"] == n_wrist
+    assert np.linalg.norm(poses[-1, :3, 3] - poses[0, :3, 3]) > 0.1
+    assert len(blueprints) == 1

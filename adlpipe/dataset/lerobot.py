@@ -8,19 +8,21 @@
                                                     stats/<feature>/<stat>
     data/chunk-{c:03d}/file-{f:03d}.parquet         one row per frame; a new file past data_files_size_in_mb
 
-Per frame: observation.images.rgb (PNG), observation.images.depth (16-bit PNG, millimetres, 0 = no return; when the
-dataset has depth), observation.images.affordance (8-bit PNG of the map; when it has maps), observation.state
-(end effector x, y, z in the base frame, the joints, the gripper; NaN where a bag had no sample near the frame),
-action (the end effector's position at the next frame; the last frame repeats its own), timestamp (the camera
-stamp from the episode's first frame), frame_index, episode_index, index, task_index. Images are stored in the
-parquet files as Hugging Face `datasets` Image structs ({bytes, path}), as LeRobot does for image features.
+Per frame: observation.images.rgb (PNG; in a dataset of several cameras, observation.images.<name> for each camera
+instead: the other cameras' frames nearest each frame of the first one, black where none), observation.images.depth
+(16-bit PNG, millimetres, 0 = no return; when the dataset has depth), observation.images.affordance (8-bit PNG of
+the map; when it has maps), observation.state (end effector x, y, z in the base frame, the joints, the gripper; NaN
+where a bag had no sample near the frame), action (the end effector's position at the next frame; the last frame
+repeats its own), timestamp (the camera stamp from the episode's first frame), frame_index, episode_index, index,
+task_index. Images are stored in the parquet files as Hugging Face `datasets` Image structs ({bytes, path}), as
+LeRobot does for image features.
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -99,10 +101,15 @@ class Layout:
     depth: bool
     affordance: bool
     fps: int
+    cameras: list[str] = field(default_factory=list)  # every camera's name when there are several, else empty
+
+    def image_key(self, camera: str) -> str:
+        return f"observation.images.{camera}" if self.cameras else RGB
 
     def features(self) -> dict[str, dict]:
         img = {"dtype": "image", "names": ["height", "width", "channels"]}
-        f: dict[str, dict] = {RGB: {**img, "shape": [self.size, self.size, 3]}}
+        f: dict[str, dict] = {self.image_key(c): {**img, "shape": [self.size, self.size, 3]}
+                              for c in self.cameras or ["rgb"]}
         if self.depth:
             f[DEPTH] = {**img, "shape": [self.size, self.size, 1], "info": {"is_depth_map": True, "unit": "mm"}}
         if self.affordance:
@@ -131,6 +138,7 @@ class Layout:
 def plan(f: h5py.File, names: list[str]) -> Layout:
     """Decide the features from the episodes' small arrays; every episode must have the same joints."""
     joints: list[str] | None = None
+    cameras: list[str] | None = None
     depth = affordance = False
     rates = []
     for n in names:
@@ -141,6 +149,12 @@ def plan(f: h5py.File, names: list[str]) -> Layout:
         elif jn != joints:
             raise AdlError(f"episode {n}: joints {jn} differ from {joints} of the first episode; a LeRobot dataset "
                            "has one state vector: export the robots' episodes separately (--episodes)")
+        names_of = schema.camera_names(g)
+        if cameras is None:
+            cameras = names_of
+        elif names_of != cameras:
+            raise AdlError(f"episode {n}: cameras {names_of} differ from {cameras} of the first episode; a LeRobot "
+                           "dataset has one set of image keys: export them separately (--episodes)")
         fr = _frames_checked(g, n)  # every episode checked before anything is written
         depth |= bool(g.attrs.get("has_depth", False)) and "depth" in fr and len(fr["depth"]) > 0
         affordance |= bool(g.attrs.get("has_affordance", False)) and "affordance" in fr and len(fr["affordance"]) > 0
@@ -148,7 +162,8 @@ def plan(f: h5py.File, names: list[str]) -> Layout:
         if len(t) > 1:
             rates.append(1.0 / float(np.median(np.diff(t))))
     fps = max(1, int(round(float(np.median(rates))))) if rates else 1
-    return Layout(int(f.attrs["image_size"]), joints or [], depth, affordance, fps)
+    several = cameras if cameras and len(cameras) > 1 else []
+    return Layout(int(f.attrs["image_size"]), joints or [], depth, affordance, fps, several)
 
 
 class Export:
@@ -193,8 +208,12 @@ class Export:
         stats[STATE].add(state)
         stats[ACTION].add(action)
         # one frame decoded at a time; the episode's PNG bytes are what is held
-        images = {RGB: ((fr["rgb"][k] for k in range(T)), 255.0)}
+        images = {self.layout.image_key(schema.camera_names(g)[0]): ((fr["rgb"][k] for k in range(T)), 255.0)}
         blank = np.zeros((self.layout.size, self.layout.size), np.float32)
+        for cam in self.layout.cameras[1:]:
+            cf = g[f"cameras/{cam}/frames"]
+            images[self.layout.image_key(cam)] = (_synced(cf["rgb"], cf["index"][()],
+                                                          np.zeros((*blank.shape, 3), np.uint8)), 255.0)
         if self.layout.depth:
             di = fr["depth_index"][()] if "depth_index" in fr else np.full(T, -1)
             images[DEPTH] = (_synced(fr["depth"], di, blank.astype(np.uint16)), 1.0)

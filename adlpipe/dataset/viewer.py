@@ -9,6 +9,8 @@ Timelines: `dataset_time` (seconds; the episodes back to back, a second apart, s
     world/camera/image/depth           the depth image synced to the frame (millimetres), when the bag had depth
     world/camera/image/affordance      the affordance map synced to the frame, as a colour overlay
     world/camera/image/ee              the end effector projected into the image
+    world/cameras/<name> (+ /image/rgb, /image/ee)  each other camera of the episode (a wrist camera): its pose and
+                                       frame at each of its own stamps, and the end effector as it sees it
     world/ee_path, world/ee            the episode's end-effector path in 3D, and where it is at the frame
     joints/<name>, gripper             joint positions and the gripper at each frame (time series)
     task                               the episode's task, bag and frame count
@@ -44,10 +46,13 @@ def affordance_overlay(aff: np.ndarray) -> np.ndarray:
     return np.dstack([rgb, (a * 180).astype(np.uint8)])
 
 
-def blueprint() -> rrb.Blueprint:
+def blueprint(cameras: list[str] = ()) -> rrb.Blueprint:
+    """The first camera (with its overlays) and the 3D view above; each other camera (a wrist camera) beside them;
+    joints, gripper and task below."""
+    others = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=c) for c in cameras]
     return rrb.Blueprint(rrb.Vertical(
-        rrb.Horizontal(rrb.Spatial2DView(origin="world/camera/image", name="camera + affordance"),
-                       rrb.Spatial3DView(origin="world", name="end effector and camera")),
+        rrb.Horizontal(rrb.Spatial2DView(origin="world/camera/image", name="camera + affordance"), *others,
+                       rrb.Spatial3DView(origin="world", name="end effector and cameras")),
         rrb.Horizontal(rrb.TimeSeriesView(origin="joints", name="joints"),
                        rrb.TimeSeriesView(origin="gripper", name="gripper"),
                        rrb.TextDocumentView(origin="task", name="task")),
@@ -68,10 +73,13 @@ def _write_dataset_recording(out: Path, data: Path, names: list[str]) -> int:
     with schema.open_dataset(data, names) as f:
         eps = [f[schema.EPISODES][n] for n in names]
         # Rerun keeps images raw: RGB, depth and the affordance overlay, about 11 bytes a pixel
-        check_recording_space(out, sum(int(np.prod(g["frames"]["rgb"].shape[:3])) * 11 for g in eps))
+        check_recording_space(out, sum(int(np.prod(g["frames"]["rgb"].shape[:3])) * 11 for g in eps)
+                              + sum(int(np.prod(g[f"cameras/{c}/frames/rgb"].shape[:3])) * 3
+                                    for g in eps for c in schema.camera_names(g)[1:]))
+        cameras = sorted({c for g in eps for c in schema.camera_names(g)[1:]})
         with atomic_path(out) as tmp:
             rec = rr.RecordingStream("adlpipe_dataset")
-            rec.save(tmp, default_blueprint=blueprint())
+            rec.save(tmp, default_blueprint=blueprint(cameras))
             rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
             start, frame = 0.0, 0
             for i, g in enumerate(eps):
@@ -161,4 +169,25 @@ def _episode(rec: rr.RecordingStream, g: object, index: int, start: float, frame
                 rec.log(f"joints/{jn}", rr.Scalars(float(joints[k, j])))
         if np.isfinite(gripper[k]):
             rec.log("gripper", rr.Scalars(float(gripper[k])))
+    for name in schema.camera_names(g)[1:]:
+        _other_camera(rec, g, name, ee, t, start, index)
     return float(t[-1]) if len(t) else 0.0, frame + len(t)
+
+
+def _other_camera(rec: rr.RecordingStream, g: object, name: str, ee: np.ndarray, t_ee: np.ndarray, start: float,
+                  index: int) -> None:
+    """Another camera's frames at its own stamps on dataset_time, with its pose (it may move) and the end effector
+    as it sees it."""
+    c, fr = g[f"cameras/{name}"], g[f"cameras/{name}/frames"]
+    K, size, lens = c["K"][()], int(fr["rgb"].shape[1]), read_lens(c)
+    poses = fr["T_base_camera"][()]
+    rec.log(f"world/cameras/{name}/image", rr.Pinhole(image_from_camera=K, resolution=[size, size]))
+    for k, tk in enumerate(fr["t"][()]):
+        rec.set_time("dataset_time", duration=start + float(tk))
+        rec.set_time("episode", sequence=index)
+        T = poses[k]
+        rec.log(f"world/cameras/{name}", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        rec.log(f"world/cameras/{name}/image/rgb", rr.Image(fr["rgb"][k]))
+        p = np.array([np.interp(tk, t_ee, ee[:, i]) for i in range(3)])[None]
+        rec.log(f"world/cameras/{name}/image/ee", rr.Points2D(project(p, K, T, lens, (size, size)),
+                                                               colors=[EE_COLOR], radii=1.5))
