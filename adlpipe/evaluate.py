@@ -29,9 +29,10 @@ import numpy as np
 import torch
 
 from .atomic import check_outputs, json_text, write_all_atomic
+from .camera import project
 from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, int_range
 from .dataset import schema
-from .dataset.loader import Normalizer, TrajectoryDataset
+from .dataset.loader import Normalizer, TrajectoryDataset, check_cameras
 from .dataset.splits import load_split
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
@@ -150,7 +151,10 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
                        "python -m adlpipe.replay --closed-loop, or python -m adlpipe.benchmark for Push-T)")
     with schema.open_dataset(data, names=[]) as f:
         schema.check_horizon(model_dir, cfg.horizon, f, data)
-    ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth)
+    ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth, cameras=cfg.cameras)
+    with schema.open_dataset(data, test) as f:
+        check_cameras(f, test, cfg.cameras, str(data))
+        views = other_views(f, test)
     norm = Normalizer(ck["stats"])
     obs = torch.stack([ds[i][0] for i in range(len(ds))])
     gt = norm.unnormalize(torch.stack([ds[i][1] for i in range(len(ds))]))
@@ -179,8 +183,28 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
                 "input_px": cfg.image_size, **error_figures(px, cm, best_px, best_cm, tasks, k, image_px),
                 **mode_figures(samples, modes or {}, tasks),
                 "ms": timed["ms"], "ms_ci": timed.get("ms_ci"),
+                **({"px_by_camera": camera_px(samples[0].numpy(), views, image_px)} if views else {}),
             }
     return rows
+
+
+def other_views(f: object, names: list[str]) -> dict[str, list[schema.CameraView]]:
+    """camera name -> its view in each named episode, for the cameras beside the first that every one has."""
+    groups = [f[schema.EPISODES][n] for n in names]
+    common = set.intersection(*(set(schema.camera_names(g)[1:]) for g in groups)) if groups else set()
+    return {c: [schema.read_camera(g, c) for g in groups] for c in sorted(common)}
+
+
+def camera_px(pred: np.ndarray, views: dict[str, list[schema.CameraView]], size: int) -> dict[str, dict]:
+    """Per other camera: the predicted 3D waypoints (E, N, 5: u, v, x, y, z) seen through that camera at its
+    first-frame pose against the demonstration as it saw it (its traj2d), in pixels of the stored images (size),
+    the mean over episodes with its 95 % bootstrap interval. The first camera's px are the row's own px."""
+    out = {}
+    for name, vs in views.items():
+        per = [float(np.linalg.norm(project(p[:, 2:5], v.K, v.T_base_camera, v.lens, (size, size)) - v.traj2d,
+                                    axis=1).mean()) for p, v in zip(pred, vs, strict=True)]
+        out[name] = {"px": float(np.mean(per)), "px_ci": list(mean_interval(per)), "n": len(per)}
+    return out
 
 
 def blind_rows(data: Path, split: dict, image_px: int, k: int) -> dict:
@@ -225,6 +249,23 @@ def table1(results: dict[str, dict], k: int, training: dict[str, dict]) -> str:
                              f"{error_cell(r, 'px')} | {r['px224']:.2f} | {error_cell(r, 'cm')} | "
                              f"{error_cell(r, 'ms', 1)} | "
                              f"{error_cell(r, f'best_of_{k}_px')} | {mm} | {share_cell(r, 'commitment')} |")
+    return "\n".join(lines) + "\n" + camera_table(results)
+
+
+def camera_table(results: dict[str, dict]) -> str:
+    """px in each other camera of the episodes (the predicted 3D waypoints seen through it), best checkpoints'
+    rows; empty for one-camera data."""
+    rows = [(model, r) for model, by_ck in results.items() for r in by_ck["best"].values() if r.get("px_by_camera")]
+    if not rows:
+        return ""
+    names = sorted(rows[0][1]["px_by_camera"])
+    lines = ["", "px in the other cameras (the predicted 3D waypoints as each camera saw the scene at the first "
+             "image, against the demonstration in that camera; best checkpoints):", "",
+             "| method | sampler | steps | " + " | ".join(f"{c} px [95 %]" for c in names) + " |",
+             "| --- | --- | ---: |" + " ---: |" * len(names)]
+    for model, r in rows:
+        cells = " | ".join(error_cell(r["px_by_camera"][c], "px") for c in names)
+        lines.append(f"| {model} | {r['method']} | {r['steps']} | {cells} |")
     return "\n".join(lines) + "\n"
 
 

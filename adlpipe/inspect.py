@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         names = pick_episodes(args.episodes or ["0"], test, "the test split", all_names, args.data)
         eps = [schema.read_episode(f, n) for n in names]
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
-                                                        policy.cfg.use_depth)) for n in names])
+                                                        policy.cfg.use_depth, policy.cfg.cameras)) for n in names])
     gen = placement.generator(args.seed)
     k = 1 if policy.family == "mse" else args.samples
     samples = torch.stack([norm.unnormalize(predict(policy, obs, args.steps, None, gen, placement))

@@ -241,7 +241,7 @@ def predict_all(model_dir: Path, checkpoint: str, data: Path, names: list[str], 
     with h5py.File(data, "r") as f:
         schema.check_horizon(model_dir, policy.cfg.horizon, f, data)
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
-                                                        policy.cfg.use_depth)) for n in names])
+                                                        policy.cfg.use_depth, policy.cfg.cameras)) for n in names])
     out = {}
     for steps in steps_for(policy.family, fm_steps, dp_steps):
         pred = norm.unnormalize(predict(policy, obs, steps, None, placement.generator(seed), placement))

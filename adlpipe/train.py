@@ -57,6 +57,7 @@ from .dataset.loader import (
     TrajectoryDataset,
     WindowDataset,
     Windows,
+    check_cameras,
     compute_action_stats,
     compute_stats,
     compute_window_stats,
@@ -177,7 +178,7 @@ def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], 
     stats = compute_stats(str(data), train_names)
 
     def firsts(names: list[str], **kw: object) -> TrajectoryDataset:
-        return TrajectoryDataset(str(data), names, stats, cfg.image_size, cfg.use_depth, **kw)
+        return TrajectoryDataset(str(data), names, stats, cfg.image_size, cfg.use_depth, cameras=cfg.cameras, **kw)
 
     return (stats, firsts(train_names, augment=aug, seed=seed), firsts(split["test"] or train_names),
             firsts(val_names, cache=False) if val_names else None)
@@ -237,6 +238,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     with schema.open_dataset(data, split["train"] + split["test"]) as f:
         horizon, stored_size = int(f.attrs["n_waypoints"]), int(f.attrs["image_size"])
         tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
+        check_cameras(f, split["train"] + split["test"], cfg.cameras, str(data))
     if horizon != cfg.horizon and not cfg.closed_loop:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
     train_names, val_names = split_validation(tasks, val_fraction, seed)
@@ -410,6 +412,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-image", action="store_true",
                    help="closed loop: a state-only model (no image encoder; the state stream alone conditions it, "
                    "as the seed's Franka Kitchen policies)")
+    p.add_argument("--cameras", nargs="+", metavar="NAME",
+                   help="the cameras the model sees, in order (names of the topic map's cameras list), each through "
+                   "one shared image encoder; default: the first camera alone")
     p.add_argument("--target", choices=["command", "ee", "action"], default="command",
                    help="closed loop: command (the commanded end effector's waypoints relative to the command now: "
                    "the action stream's x, y, z; default), ee (the measured end effector's, relative to where it "
@@ -439,6 +444,12 @@ def main(argv: list[str] | None = None) -> int:
             overrides.update(target="action", action_dim=action_dim, state_dim=state_dim * args.obs_frames)
     elif args.no_image:
         raise AdlError("--no-image needs --closed-loop: a first-frame model has no state input")
+    if args.cameras:
+        if args.closed_loop:
+            raise AdlError("--cameras is for first-frame models; closed-loop models see the first camera only")
+        if len(set(args.cameras)) < len(args.cameras):
+            raise AdlError(f"--cameras {' '.join(args.cameras)}: a camera is named twice")
+        overrides["cameras"] = tuple(args.cameras)
     elif horizon % 4:  # the U-Net halves the sequence twice; the transformers take any length
         raise AdlError(f"{args.data}: {horizon} waypoints per trajectory; the models need a multiple of 4 "
                        "(re-ingest with --waypoints 32)")

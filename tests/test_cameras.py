@@ -167,3 +167,48 @@ def test_the_dataset_viewer_shows_each_camera(two_cameras: Path, tmp_path: Path)
     assert rows["/world/cameras/wrist/image/ee"] == n_wrist
     assert np.linalg.norm(poses[-1, :3, 3] - poses[0, :3, 3]) > 0.1
     assert len(blueprints) == 1
+
+
+def test_a_model_sees_both_cameras_and_evaluate_scores_each(tmp_path: Path) -> None:
+    """train --cameras scene wrist: each camera's first frame through the one shared encoder; evaluate gives px in
+    the wrist camera too: the predicted 3D waypoints seen through it (the demonstration's own 3D path scores 0)."""
+    import json
+
+    bags = []
+    for k, (task, duration) in enumerate([("wipe the table", 3.0), ("wipe the table", 3.2), ("pass the cup", 3.0),
+                                          ("pass the cup", 3.2)]):
+        lay = Layout(wrist=True, task=task, duration_s=duration)
+        bags.append(write_layout_bag(tmp_path / f"b{k}.mcap", lay)[0])
+    data = tmp_path / "two.h5"
+    assert ingest(bags, data, TopicMap.load(_map(tmp_path, Layout(wrist=True))), n_waypoints=16, size=SIZE)["new"] == 4
+    with h5py.File(data) as f:
+        names = schema.episode_names(f)
+    (tmp_path / "split.json").write_text(json.dumps({"train": names[::2], "test": names[1::2]}))
+    common = ["--data", data, "--split", tmp_path / "split.json", "--epochs", "2", "--batch-size", "4",
+              "--image-size", "32", "--val-fraction", "0"]
+    run_module("train", "--model", "fm_cnn", *common, "--cameras", "scene", "wrist", "--out", tmp_path / "fm",
+               check=True)
+    from adlpipe.policy.checkpoint import load_policy
+
+    policy, _ck = load_policy(tmp_path / "fm" / "model.pt")
+    assert policy.cfg.cameras == ("scene", "wrist") and policy.encoder.stem[0].in_channels == 4
+    run_module("evaluate", "--models", tmp_path / "fm", "--data", data, "--split", tmp_path / "split.json",
+               "--steps", "1", "--best-of", "2", "--repeats", "2", "--metrics", tmp_path / "m.json", "--details",
+               tmp_path / "d.json", "--plots", tmp_path / "p.csv", "--table", tmp_path / "t.md", check=True)
+    row = json.loads((tmp_path / "d.json").read_text())["models"]["fm"]["best"]["euler/1"]
+    wrist = row["px_by_camera"]["wrist"]
+    assert wrist["n"] == 2 and wrist["px_ci"][0] <= wrist["px"] <= wrist["px_ci"][1] and wrist["px"] > 0
+    assert "wrist px [95 %]" in (tmp_path / "t.md").read_text()
+    from adlpipe.evaluate import camera_px, other_views
+
+    with h5py.File(data) as f:
+        views = other_views(f, names)
+        truth = np.stack([np.concatenate([f["episodes"][n]["traj2d"][()], f["episodes"][n]["traj3d"][()]], 1)
+                          for n in names])
+    assert list(views) == ["wrist"]
+    assert camera_px(truth, views, SIZE)["wrist"]["px"] < 1e-3
+    assert camera_px(truth + np.array([0, 0, 0.05, 0, 0]), views, SIZE)["wrist"]["px"] > 1.0  # 5 cm off: seen
+    # a camera the data lacks is one line
+    line = one_line_error(run_module("train", "--model", "fm_cnn", *common, "--cameras", "scene", "side", "--out",
+                                     tmp_path / "x"))
+    assert "has no camera 'side'" in line

@@ -129,10 +129,42 @@ class Normalizer:
         return (x + 1) / 2 * (self.hi - self.lo).to(x) + self.lo.to(x)
 
 
-def observation(g: h5py.Group, image_size: int, use_depth: bool) -> np.ndarray:
-    """(C, S, S) float32 in [-1, 1] of a stored episode: RGB, affordance, optional depth."""
-    depth = (g["depth"][()] if "depth" in g else None) if use_depth else None
-    return observation_from_arrays(g["rgb"][()], g["affordance"][()], depth, image_size, use_depth)
+def observation(g: h5py.Group, image_size: int, use_depth: bool, cameras: tuple[str, ...] = ()) -> np.ndarray:
+    """(C, S, S) float32 in [-1, 1] of a stored episode's first frame: RGB, affordance, optional depth. With
+    `cameras` (names, in order), one such stack per camera, concatenated: another camera's frame is the one nearest
+    the first image, with a blank affordance map (-1) and its own depth."""
+    if not cameras:
+        depth = (g["depth"][()] if "depth" in g else None) if use_depth else None
+        return observation_from_arrays(g["rgb"][()], g["affordance"][()], depth, image_size, use_depth)
+    have = schema.camera_names(g)
+    primary = have[0]
+    views = []
+    for name in cameras:
+        if name not in have:
+            raise AdlError(f"episode {g.name.rpartition('/')[2]} has no camera {name!r} (its cameras: "
+                           f"{', '.join(have)}); the model was trained on data with other cameras")
+        if name == primary:
+            views.append(observation(g, image_size, use_depth))
+            continue
+        fr = g[f"{schema.CAMERAS}/{name}/frames"]
+        k = int(fr["index"][0])
+        if k < 0:
+            raise AdlError(f"episode {g.name.rpartition('/')[2]}: camera {name} has no frame near the first image")
+        d = int(fr["depth_index"][k]) if use_depth and "depth_index" in fr else -1
+        depth = metres_from_mm(fr["depth"][d]) if d >= 0 else None
+        blank = np.zeros(fr["rgb"].shape[1:3], np.float32)
+        views.append(observation_from_arrays(fr["rgb"][k], blank, depth, image_size, use_depth))
+    return np.concatenate(views)
+
+
+def check_cameras(f: h5py.File, names: list[str], cameras: tuple[str, ...], where: str) -> None:
+    """Every named episode has the cameras a model sees; one line naming the first that lacks one."""
+    for n in names:
+        have = schema.camera_names(f[schema.EPISODES][n])
+        missing = [c for c in cameras if c not in have]
+        if missing:
+            raise AdlError(f"{where}: episode {n} has no camera {missing[0]!r} (its cameras: {', '.join(have)}); "
+                           "--cameras names cameras of the topic map the bags were ingested with")
 
 
 def observation_from_arrays(rgb: np.ndarray, affordance: np.ndarray, depth: np.ndarray | None, image_size: int,
@@ -163,10 +195,12 @@ class TrajectoryDataset(Dataset):
     the whole set fits in MAX_CACHED_BYTES, else read every time."""
 
     def __init__(self, path: str, names: list[str], stats: dict, image_size: int, use_depth: bool = False,
-                 cache: bool = True, augment: Augment | None = None, seed: int = 0) -> None:
+                 cache: bool = True, augment: Augment | None = None, seed: int = 0,
+                 cameras: tuple[str, ...] = ()) -> None:
         self.path, self.names = str(path), list(names)
         self.norm = Normalizer(stats)
-        item_bytes = (5 if use_depth else 4) * image_size * image_size * 4
+        self.cameras = tuple(cameras)
+        item_bytes = (5 if use_depth else 4) * image_size * image_size * 4 * max(1, len(self.cameras))
         # cached only while small: a paper-size set (10,000 episodes at 224 px) would hold 8 GB per worker
         self.cache = cache and len(self.names) * item_bytes <= MAX_CACHED_BYTES
         self.image_size, self.use_depth = image_size, use_depth
@@ -198,7 +232,7 @@ class TrajectoryDataset(Dataset):
             obs, target = self._items[i]
         else:
             g = self._handle()[schema.EPISODES][self.names[i]]
-            obs, target = observation(g, self.image_size, self.use_depth), raw_target(g)
+            obs, target = observation(g, self.image_size, self.use_depth, self.cameras), raw_target(g)
             if self.cache:
                 self._items[i] = (obs, target)
         if self.augment is not None:

@@ -67,6 +67,12 @@ class ModelConfig:
     target: str = "ee"  # closed loop: "ee" (end-effector waypoints) or "action" (the bag's action stream, with its
     #                     state stream as the state input: Push-T, joint-space policies)
     use_image: bool = True  # False: no image encoder, the state alone conditions the network (Franka Kitchen)
+    cameras: tuple[str, ...] = ()  # the cameras it sees, in order, each through the one shared encoder (features
+    #                                concatenated, as Diffusion Policy does with several image keys); (): the first
+
+    @property
+    def views(self) -> int:
+        return max(1, len(self.cameras))
 
     @property
     def in_channels(self) -> int:
@@ -79,12 +85,14 @@ class ModelConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["down_dims"] = list(self.down_dims)
+        d["cameras"] = list(self.cameras)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
         d = dict(d)
         d["down_dims"] = tuple(d["down_dims"])
+        d["cameras"] = tuple(d.get("cameras", ()))
         return cls(**d)
 
 
@@ -140,7 +148,7 @@ class Policy(nn.Module):
         self.kind, net = MODELS[cfg.model]
         self.objective = make_objective(self.kind)
         self.encoder = ResNet18GN(cfg.in_channels, cfg.obs_dim, cfg.encoder_width) if cfg.use_image else None
-        cond = (cfg.obs_dim if cfg.use_image else 0) + cfg.state_dim
+        cond = (cfg.obs_dim * cfg.views if cfg.use_image else 0) + cfg.state_dim
         if net in ("unet", "unet_regressor"):
             self.net = ConditionalUnet1D(cfg.action_dim, cond, cfg.down_dims, cfg.kernel, cfg.groups)
             if net == "unet_regressor":
@@ -170,8 +178,15 @@ class Policy(nn.Module):
         the state alone; its image part is empty)."""
         if isinstance(obs, tuple | list):
             image, state = obs
-            return state if self.encoder is None else torch.cat([self.encoder(image), state], dim=1)
-        return self.encoder(obs)
+            return state if self.encoder is None else torch.cat([self.encode(image), state], dim=1)
+        return self.encode(obs)
+
+    def encode(self, image: torch.Tensor) -> torch.Tensor:
+        """(B, views * C, S, S) -> (B, views * obs_dim): each camera's stack through the shared encoder."""
+        if self.cfg.views == 1:
+            return self.encoder(image)
+        b, c, h, w = image.shape
+        return self.encoder(image.reshape(b * self.cfg.views, c // self.cfg.views, h, w)).reshape(b, -1)
 
     def loss(self, obs: Observation, action: torch.Tensor, noise: Noise | None = None,
              gen: torch.Generator | None = None) -> torch.Tensor:
