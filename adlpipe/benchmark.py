@@ -132,6 +132,8 @@ def check_model(d: Path, bench: Benchmark) -> dict:
             raise AdlError(f"{d}: no {name}; train it first (python -m adlpipe.train --closed-loop --target action)")
     _policy, ck = load_policy(d / CHECKPOINTS["last"])
     cfg = ck["config"]
+    if len(cfg.get("cameras", ())) > 1:
+        raise AdlError(f"{d}: sees cameras {', '.join(cfg['cameras'])}; {bench.title} renders one camera")
     if (cfg.get("target") != "action" or cfg.get("action_dim") != bench.action_dim
             or (cfg.get("use_image", True) and not bench.images)):
         how = "" if bench.images else " --no-image"

@@ -320,6 +320,9 @@ def main(argv: list[str] | None = None) -> int:
             if policy.cfg.target == "action":
                 raise AdlError(f"{d}: predicts the bags' action stream, not end-effector waypoints; run it with "
                                "python -m adlpipe.benchmark (Push-T)")
+            if policy.cfg.views > 1:
+                raise AdlError(f"{d}: sees cameras {', '.join(policy.cfg.cameras)}; the ADL world renders one "
+                               "camera, so closed-loop replay cannot feed it")
             if i == 0 and args.oracle:  # in the first model's format
                 jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, args.data, eps, rates, args.oracle,
                                     args.closed_loop, placement)

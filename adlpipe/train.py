@@ -167,7 +167,8 @@ def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], 
                  else compute_window_stats(data, train_names, w))
 
         def windows(names: list[str], **kw: object) -> WindowDataset:
-            return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, **kw)
+            return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, cameras=cfg.cameras,
+                                 **kw)
 
         train_ds = windows(train_names, augment=aug, draws_per_epoch=len(train_names))
         if windows_per_epoch == "all":
@@ -445,8 +446,8 @@ def main(argv: list[str] | None = None) -> int:
     elif args.no_image:
         raise AdlError("--no-image needs --closed-loop: a first-frame model has no state input")
     if args.cameras:
-        if args.closed_loop:
-            raise AdlError("--cameras is for first-frame models; closed-loop models see the first camera only")
+        if args.closed_loop and args.no_image:
+            raise AdlError("--cameras with --no-image: a state-only model sees no camera")
         if len(set(args.cameras)) < len(args.cameras):
             raise AdlError(f"--cameras {' '.join(args.cameras)}: a camera is named twice")
         overrides["cameras"] = tuple(args.cameras)

@@ -208,6 +208,22 @@ def test_a_model_sees_both_cameras_and_evaluate_scores_each(tmp_path: Path) -> N
     assert list(views) == ["wrist"]
     assert camera_px(truth, views, SIZE)["wrist"]["px"] < 1e-3
     assert camera_px(truth + np.array([0, 0, 0.05, 0, 0]), views, SIZE)["wrist"]["px"] > 1.0  # 5 cm off: seen
+    # closed loop: each camera's last two frames (the wrist's nearest the scene's), one shared encoder
+    run_module("train", "--model", "fm_cnn", *common, "--closed-loop", "--target", "ee", "--cameras", "scene",
+               "wrist", "--out", tmp_path / "cl", check=True)
+    policy, ck = load_policy(tmp_path / "cl" / "model.pt")
+    assert policy.cfg.views == 2 and policy.encoder.stem[0].in_channels == 8
+    from adlpipe.dataset.loader import WindowDataset, Windows
+
+    ds = WindowDataset(data, names[:1], ck["stats"], 32, Windows(2, 16, 10.0, "ee"), cameras=("scene", "wrist"))
+    (obs, _state), _target = ds[5]
+    assert obs.shape == (16, 32, 32)
+    with h5py.File(data) as f:
+        fr = f["episodes"][names[0]]["cameras/wrist/frames"]
+        j = int(fr["index"][5])
+        want = cv2.resize(fr["rgb"][j], (32, 32), interpolation=cv2.INTER_AREA).transpose(2, 0, 1) / 127.5 - 1
+    np.testing.assert_allclose(obs[12:15].numpy(), want, atol=1e-6)  # the wrist's frame at the current step
+    assert float(obs[15].max()) == -1.0  # its blank affordance channel
     # a camera the data lacks is one line
     line = one_line_error(run_module("train", "--model", "fm_cnn", *common, "--cameras", "scene", "side", "--out",
                                      tmp_path / "x"))

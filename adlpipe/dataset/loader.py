@@ -356,10 +356,11 @@ class WindowDataset(Dataset):
 
     def __init__(self, index: str | Path, names: list[str], stats: dict, image_size: int, windows: Windows,
                  use_depth: bool = False, augment: Augment | None = None, draws_per_epoch: int | None = None,
-                 frames_per_episode: int | None = None, seed: int = 0) -> None:
+                 frames_per_episode: int | None = None, seed: int = 0, cameras: tuple[str, ...] = ()) -> None:
         # A fixed set (validation, test loss) without augmentation is kept in memory when small; training windows
         # and large sets stream.
         self.names, self.w = list(names), windows
+        self.cameras = tuple(cameras)  # the cameras a multi-camera model sees, in order; (): the first alone
         self.stats, self.norm = stats, Normalizer(stats)
         self.image_size, self.use_depth, self.augment = image_size, use_depth, augment
         self.draws, self.seed, self.epoch = draws_per_epoch, seed, 0
@@ -441,7 +442,34 @@ class WindowDataset(Dataset):
         return obs, m["state"][idx], target
 
     def _images(self, g: h5py.Group, m: dict, k: int, idx: list[int]) -> np.ndarray:
-        """The stacked image channels of frames idx (ending at k)."""
+        """The stacked image channels of frames idx (ending at k); with several cameras, one such stack per camera,
+        in order: another camera's frames are those nearest the first camera's (its frames/index)."""
+        if not self.cameras:
+            return self._first_camera_images(g, m, k, idx)
+        primary = schema.camera_names(g)[0]
+        return np.concatenate([self._first_camera_images(g, m, k, idx) if c == primary
+                               else self._other_camera_images(g, c, idx) for c in self.cameras])
+
+    def _other_camera_images(self, g: h5py.Group, name: str, idx: list[int]) -> np.ndarray:
+        """Another camera's frames nearest the first camera's frames idx: RGB, a blank affordance channel (-1), its
+        own depth. A frame it has none for (index -1) takes its nearest earlier one, else its first."""
+        fr = g[f"{schema.CAMERAS}/{name}/frames"]
+        index = fr["index"][()]
+        have = np.flatnonzero(index >= 0)
+        if not len(have):
+            raise AdlError(f"episode {g.name.rpartition('/')[2]}: camera {name} has no frame near any frame of the "
+                           "first camera")
+        size = self.image_size
+        blank = np.zeros(fr["rgb"].shape[1:3], np.float32)
+        out = []
+        for i in idx:
+            j = int(index[have[max(np.searchsorted(have, i, "right") - 1, 0)]])
+            d = int(fr["depth_index"][j]) if self.use_depth and "depth_index" in fr else -1
+            out.append(observation_from_arrays(fr["rgb"][j], blank, metres_from_mm(fr["depth"][d]) if d >= 0
+                                               else None, size, self.use_depth))
+        return np.concatenate(out)
+
+    def _first_camera_images(self, g: h5py.Group, m: dict, k: int, idx: list[int]) -> np.ndarray:
         lo = idx[0]
         rgbs = g["frames/rgb"][lo:k + 1]  # one read for the whole stack
         size = (self.image_size, self.image_size)  # resized frame by frame, exactly as at inference
