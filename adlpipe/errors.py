@@ -75,6 +75,9 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
     except OSError as exc:
         return _fail(prog, os_error_message(exc))
     except KeyboardInterrupt:
+        # a late delivery of the same Ctrl-C (seen once under heavy load: the process then died by SIGINT, -2,
+        # after saying "interrupted") must not turn the clean exit into a signal death while Python shuts down
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
 
