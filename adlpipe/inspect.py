@@ -2,12 +2,14 @@
 
     python -m adlpipe.inspect --model models/fm_cnn --episodes 0 1 2 -o preds.rrd     (indices into the test split)
     python -m adlpipe.inspect --dataset --data data/adl.h5 [--episodes NAME|INDEX ...] -o data.rrd
+    python -m adlpipe.inspect --dataset --data data/adl.h5 --episodes NAME --bag BAG -o side.rrd
     rerun preds.rrd
 
 --dataset: every frame of every episode (or of those named; indices count all episodes in catalog order), one
 after another on the `dataset_time` timeline: the camera image with the affordance overlay and the projected end
 effector, the end-effector path and the camera frustum in 3D, the joints and gripper as time series
-(adlpipe/dataset/viewer.py).
+(adlpipe/dataset/viewer.py). With --bag, one episode beside the bag it came from, on one timeline: the bag's
+images as recorded, its joint states and its tf end-effector path next to what ingest stored.
 
 Per episode (timeline `episode`): the RGB image with the affordance map as a colour-mapped overlay, the ground-truth
 and predicted 2D trajectories as line strips on the image, the 3D trajectories in the base frame and the camera
@@ -30,7 +32,12 @@ from .cli import SEED, Parser, int_range
 from .dataset import schema, viewer
 from .dataset.loader import Normalizer, observation
 from .dataset.splits import load_split
-from .dataset.viewer import affordance_overlay, close_recording, write_dataset_recording
+from .dataset.viewer import (
+    affordance_overlay,
+    close_recording,
+    write_bag_beside_episode,
+    write_dataset_recording,
+)
 from .errors import AdlError, read_json_object, run_cli
 from .outcomes import outcome_text
 from .policy.checkpoint import CHECKPOINTS, load_policy
@@ -101,11 +108,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--replay", type=Path, metavar="DETAILS",
                    help="replay's details (metrics/replay_details.json): log each episode's replay outcome for this "
                    "model (success, or the parts of the predicate that failed, and the peak force on the person)")
+    p.add_argument("--bag", type=Path, help="with --dataset and one episode: show the bag it was ingested from beside "
+                   "it")
+    p.add_argument("--config", type=Path, action="append",
+                   help="with --bag: the topic map (default: the one the episode was ingested with)")
     p.add_argument("-o", "--output", type=Path, default=Path("preds.rrd"))
     add_device_args(p, compile_option=True)
     args = p.parse_args(argv)
     if args.dataset == (args.model is not None):
         p.error("give either --model (predictions) or --dataset (the dataset's frames)")
+    if args.bag and not args.dataset:
+        p.error("--bag goes with --dataset")
     check_outputs(args.output)
     if args.dataset:
         return record_dataset(args)
@@ -161,6 +174,12 @@ def record_dataset(args: object) -> int:
     names = pick_episodes(args.episodes or [], catalog, f"{args.data}'s catalog", catalog, args.data) or catalog
     if not names:
         raise AdlError(f"{args.data}: no episodes to record")
+    if args.bag:
+        if len(names) != 1:
+            raise AdlError("--bag shows one episode beside its bag: name it with --episodes NAME")
+        images = write_bag_beside_episode(args.output, args.data, names[0], args.bag, args.config)
+        print(f"{args.output}: episode {names[0]} of {args.data} beside {args.bag} ({images} bag images)")
+        return 0
     frames = write_dataset_recording(args.output, args.data, names)
     print(f"{args.output}: {len(names)} episode(s), {frames} frames of {args.data}")
     return 0

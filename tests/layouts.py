@@ -62,6 +62,9 @@ class Layout:
     wrist: bool = False  # a second camera on the arm (WRIST), moving with the last moving link, at wrist_hz
     wrist_hz: float = 15.0
     wrist_tf: bool = True  # False: the wrist camera's frame is on no tf (a forgotten static transform)
+    frozen: tuple[int, int] | None = None  # frames k0..k1 repeat frame k0's image (a camera driver that froze)
+    tf_glitch_s: float | None = None  # the moving tf sample nearest this time is 0.5 m off (a tf glitch)
+    idle_start_s: float = 0.0  # the arm holds still this long before it moves (an operator who paused)
 
 
 # A wrist camera as labs mount one: fixed to the arm's last moving link by /tf_static, its own topics and size.
@@ -98,6 +101,7 @@ def _moving(t: float) -> list[np.ndarray]:
 
 def _clock(t: float, lay: Layout) -> tuple[float, int]:
     """(motion time, demonstration index) at bag time t: the motion clock stops while the robot pauses."""
+    t = max(0.0, t - lay.idle_start_s)
     period = lay.duration_s + lay.pause_s
     k = min(int(t // period), lay.demos - 1) if period > 0 else 0
     return k * lay.duration_s + min(t - k * period, lay.duration_s), k
@@ -132,7 +136,7 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
     events.append((ns(0), 0, "/tf_static", M.TF, lambda: f.tf(ns(0), statics)))
     if lay.task:
         events.append((ns(0), 1, "/task", M.STRING, lambda: f.string(lay.task)))
-    total = lay.demos * (lay.duration_s + lay.pause_s) - lay.pause_s
+    total = lay.demos * (lay.duration_s + lay.pause_s) - lay.pause_s + lay.idle_start_s
     if lay.markers:
         for k in range(lay.demos):
             a = k * (lay.duration_s + lay.pause_s)
@@ -169,6 +173,8 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
             continue
         tn = ns(t)
         chain = _moving(_clock(t, lay)[0])
+        if lay.tf_glitch_s is not None and abs(t - lay.tf_glitch_s) < 0.5 / lay.tf_hz:
+            chain[1] = chain[1] @ pose_matrix([0.5, 0.0, 0.0], [1.0, 0, 0, 0])
         names = [robot["base"], *robot["moving"]]
         tfs = [(names[i], names[i + 1], T[:3, 3], matrix_to_quat(T[:3, :3])) for i, T in enumerate(chain)]
         events.append((tn, 4, "/tf", M.TF, lambda tn=tn, tfs=tfs: f.tf(tn, tfs)))
@@ -252,6 +258,8 @@ def encode_rgb(rgb: np.ndarray, encoding: str) -> np.ndarray:
 
 def _camera_image(k: int, lay: Layout) -> tuple[np.ndarray, str]:
     width, height = lay.size
+    if lay.frozen and lay.frozen[0] <= k <= lay.frozen[1]:
+        k = lay.frozen[0]
     rgb = smooth_rgb(k, height, width) if lay.smooth else _noise(k, height, width)
     return encode_rgb(rgb, lay.encoding), lay.encoding
 

@@ -6,6 +6,7 @@ writer, every frame streamed into the episode's group. What `adlpipe.ingest` run
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 
 import cv2
@@ -132,6 +133,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         objects=np.array(poses).reshape(-1, 7), ee_t=ee_t, ee_pos=ee_p,
         joint_t=joint_t, joint_pos=joint_pos,
         joint_names=r.joint_names if n_joints else [], note="; ".join(notes), segment=segment, lens=lens,
+        topic_map=json.dumps(tm.to_dict()), window_ns=window,
         camera_name=tm.camera_name, cameras=cameras,
     )
     return ep, ep.note

@@ -27,6 +27,7 @@ per bag, one run folder per ingest: adlpipe.dataset.shards). The index links eac
                      camera_frame, distortion_model; K, D, T_base_camera (at the first image), traj2d (traj3d
                      seen by this camera, through its lens); frames/ its own frames (adlpipe.dataset.frames)
         attr camera_name: the name of the camera stored at the top level ("camera" for a one-camera map)
+        attrs topic_map (the map it was ingested with, JSON), window_ns (a segment's log-time span, ns)
 """
 
 from __future__ import annotations
@@ -91,6 +92,8 @@ class Episode:
     lens: Lens = PINHOLE  # the camera's distortion (CameraInfo's model and d): traj2d is where points appear
     camera_name: str = "camera"  # the topic map's name for the camera above
     cameras: list[CameraView] = field(default_factory=list)  # the map's other cameras
+    topic_map: str = ""  # the topic map it was ingested with (JSON): what doctor --verify reads the bag with again
+    window_ns: tuple[int, int] | None = None  # one demonstration of several in the bag: its log-time span
 
     @property
     def name(self) -> str:
@@ -388,6 +391,9 @@ def write_episode(g: h5py.Group, ep: Episode) -> None:
     jp = s.create_dataset("joint_pos", data=ep.joint_pos.astype(np.float64))
     jp.attrs["joint_names"] = [str(n) for n in ep.joint_names]
     g.attrs["camera_name"] = ep.camera_name
+    g.attrs["topic_map"] = ep.topic_map
+    if ep.window_ns is not None:
+        g.attrs["window_ns"] = np.asarray(ep.window_ns, np.int64)
     for cam in ep.cameras:
         c = g.require_group(f"{CAMERAS}/{cam.name}")
         c.attrs["camera_frame"] = cam.camera_frame

@@ -191,3 +191,65 @@ def _other_camera(rec: rr.RecordingStream, g: object, name: str, ee: np.ndarray,
         p = np.array([np.interp(tk, t_ee, ee[:, i]) for i in range(3)])[None]
         rec.log(f"world/cameras/{name}/image/ee", rr.Points2D(project(p, K, T, lens, (size, size)),
                                                                colors=[EE_COLOR], radii=1.5))
+
+
+def write_bag_beside_episode(out: Path, data: Path, name: str, bag: Path, config: list[Path] | None = None) -> int:
+    """One recording of a raw bag and the episode ingest made of it, on one `dataset_time` timeline (seconds from
+    the episode's first frame): the bag's every camera image at its own resolution and stamp (bag/image), its
+    joint states (bag/joints/<name>) and the end-effector path as its tf gives it (world/bag_ee), beside the
+    stored episode's entities. Returns the bag images logged."""
+    from ..bags.episode_reader import read_bag, stamp_s
+    from ..bags.images import as_rgb8, decode_image
+    from ..bags.reader import BagSource
+    from .from_bag import end_effector_path, sha256_of
+    from .verify import topic_map_of
+
+    with schema.open_dataset(data, [name]) as f:
+        g = f[schema.EPISODES][name]
+        if bag.exists() and sha256_of(bag) != str(g.attrs["source_sha256"]):
+            raise AdlError(f"{bag}: not the bag episode {name} was ingested from (its sha256 differs; the episode "
+                           f"came from {g.attrs['source_path']})")
+        tm = topic_map_of(g, config)
+        t0 = int(g.attrs["stamp0_ns"]) / 1e9
+        window = tuple(int(v) for v in g.attrs["window_ns"]) if "window_ns" in g.attrs else None
+        src = BagSource(bag)
+        r = read_bag(src, tm, window)  # tf, joints and the first image: what the path needs (no frames kept)
+        ee_t, ee_p, _t_end, _note = end_effector_path(r, tm, allow_gaps=True)
+        check_recording_space(out, int(np.prod(g["frames"]["rgb"].shape[:3])) * 11
+                              + len(g["frames/t"]) * int(np.prod(r.image.shape)) * 2)
+        with atomic_path(out) as tmp:
+            rec = rr.RecordingStream("adlpipe_bag_and_episode")
+            rec.save(tmp, default_blueprint=_side_by_side_blueprint())
+            rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+            _episode(rec, g, 0, 0.0, 0)
+            rec.log("world/bag_ee_path", rr.LineStrips3D([ee_p], colors=[[90, 160, 255]], radii=0.002), static=True)
+            for t, p in zip(ee_t, ee_p, strict=True):
+                rec.set_time("dataset_time", duration=float(t))
+                rec.log("world/bag_ee", rr.Points3D([p], colors=[[90, 160, 255]], radii=0.008))
+            for k, q in enumerate(r.joint_pos):
+                rec.set_time("dataset_time", duration=float(r.joint_t[k] - t0))
+                for j, jn in enumerate(r.joint_names):
+                    rec.log(f"bag/joints/{jn}", rr.Scalars(float(q[j])))
+            images = 0
+            lo, hi = window or (None, None)
+            for _topic, log_ns, decode in src.messages([tm.image]):
+                if window and not lo <= log_ns <= hi:
+                    continue
+                msg = decode()
+                where = f"{bag}: topic {tm.image}"
+                rec.set_time("dataset_time", duration=stamp_s(msg) - t0)
+                rec.log("bag/image", rr.Image(as_rgb8(decode_image(msg, where), where)))
+                images += 1
+            close_recording(rec, tmp, out)
+    return images
+
+
+def _side_by_side_blueprint() -> rrb.Blueprint:
+    return rrb.Blueprint(rrb.Vertical(
+        rrb.Horizontal(rrb.Spatial2DView(origin="bag/image", name="bag: camera as recorded"),
+                       rrb.Spatial2DView(origin="world/camera/image", name="dataset: stored frame"),
+                       rrb.Spatial3DView(origin="world", name="end effector: bag tf (blue) and stored")),
+        rrb.Horizontal(rrb.TimeSeriesView(origin="bag/joints", name="bag: joint states"),
+                       rrb.TimeSeriesView(origin="joints", name="dataset: joints per frame"),
+                       rrb.TextDocumentView(origin="task", name="task")),
+        row_shares=[3, 2]), collapse_panels=True)

@@ -1,0 +1,244 @@
+"""Per-episode quality figures a curator acts on, and the flags they raise (adlpipe.doctor is the stage).
+
+Everything is read an episode at a time from its small arrays; frames are compared by their stored chunks (two
+identical frames compress to the same bytes, so a frozen camera is found without decoding an image) and depth
+holes from a few evenly spaced depth images. Memory stays flat in the number of episodes: what is kept per episode
+is a few numbers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import h5py
+import numpy as np
+from scipy.stats import median_abs_deviation
+
+from . import schema
+
+RESAMPLE_HZ = 50.0  # the end-effector path is resampled at this rate for speed, jerk and idle time
+DEPTH_SAMPLES = 8  # depth images per episode read for the share of holes
+MIN_FOR_OUTLIERS = 5  # a task needs this many episodes before one of them is called an outlier
+OUTLIER_FIGURES = ("duration_s", "path_m", "peak_speed_mps", "fps")
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What counts as a problem (each is a flag's threshold, stated in the flag's reason)."""
+
+    idle_speed_mps: float = 0.01  # the arm is idle while its end effector is slower than this
+    idle_s: float = 1.0  # idle this long at the start or the end of an episode is flagged
+    frozen_frames: int = 5  # this many identical consecutive camera frames: a frozen camera
+    gap_factor: float = 3.0  # a frame interval this many times the median one: a dropped stretch
+    max_speed_mps: float = 2.0  # an end effector faster than this is a tf glitch, not a motion
+    max_tf_gap_s: float = 0.2  # a longer gap between end-effector tf samples
+    depth_holes: float = 0.5  # a larger share of depth pixels without a return
+    z: float = 3.5  # robust z-score (median and scaled MAD within the task) beyond which a figure is an outlier
+    outlier_share: float = 0.25  # ... and it must also lie this share of the median away (a task whose episodes
+    #                              are nearly alike has a tiny MAD: 0.57 against 0.56 m/s is not a problem)
+
+
+def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
+    """The figures of one episode group, with its flags ("kind: reason")."""
+    fr = g["frames"]
+    t = fr["t"][()]
+    duration = float(g.attrs["duration_s"])
+    dt = np.diff(t)
+    fig: dict = {"task": str(g.attrs["task"]), "frames": len(t), "duration_s": duration,
+                 "fps": float(1 / np.median(dt)) if len(dt) and np.median(dt) > 0 else 0.0,
+                 "max_frame_gap_s": float(dt.max()) if len(dt) else 0.0,
+                 "max_frame_gap_at_s": float(t[int(dt.argmax())]) if len(dt) else 0.0}
+    fig.update(_frozen(fr["rgb"], t))
+    fig.update(_sync(g, t))
+    fig.update(_motion(g["series/ee_t"][()], g["series/ee_pos"][()], duration, limits))
+    fig["gripper_events"] = _gripper_events(fr["gripper"][()])
+    fig["depth_holes"] = _depth_holes(fr)
+    fig["bridged_tf_gap"] = "bridged" in str(g.attrs.get("note", ""))
+    fig["flags"] = flags(fig, float(fr.attrs.get("sync_tolerance_s", 0.05)), limits)
+    return fig
+
+
+def _frozen(rgb: h5py.Dataset, t: np.ndarray) -> dict:
+    """Frames identical to the one before (compared by their stored chunk bytes) and the longest run of them."""
+    repeats = longest = run = 0
+    start = at = 0
+    previous = None
+    for i in range(rgb.shape[0]):
+        chunk = rgb.id.read_direct_chunk((i, 0, 0, 0))[1]
+        if chunk == previous:
+            repeats += 1
+            run += 1
+            if run > longest:
+                longest, at = run, start
+        else:
+            run, start = 0, i
+        previous = chunk
+    return {"repeated_frames": repeats, "frozen_run": longest + 1 if longest else 0,
+            "frozen_at_s": float(t[at]) if longest else None}
+
+
+def _nearest_gap(t: np.ndarray, stamps: np.ndarray) -> np.ndarray:
+    """|t - the nearest of `stamps`| for each t (inf where there are none)."""
+    if len(stamps) == 0:
+        return np.full(len(t), np.inf)
+    s = np.sort(stamps)
+    j = np.clip(np.searchsorted(s, t), 1, len(s)) - 1
+    return np.minimum(np.abs(s[j] - t), np.abs(s[np.minimum(j + 1, len(s) - 1)] - t))
+
+
+def _sync(g: h5py.Group, t: np.ndarray) -> dict:
+    """Sync residuals of the other streams against the camera frames: the largest time from a frame to the
+    nearest end-effector tf sample, joint state and (for frames that have one) its depth image."""
+    fr = g["frames"]
+    out = {"sync_tf_s": float(_nearest_gap(t, g["series/ee_t"][()]).max()) if len(t) else 0.0}
+    joint_t = g["series/joint_t"][()]
+    out["sync_joints_s"] = float(_nearest_gap(t, joint_t).max()) if len(joint_t) and len(t) else None
+    if "depth_index" in fr and len(fr["depth_t"]):
+        index = fr["depth_index"][()]
+        ok = index >= 0
+        out["sync_depth_s"] = float(np.abs(fr["depth_t"][()][index[ok]] - t[ok]).max()) if ok.any() else None
+        out["frames_without_depth"] = int((~ok).sum())
+    else:
+        out["sync_depth_s"], out["frames_without_depth"] = None, None
+    return out
+
+
+def _motion(ee_t: np.ndarray, ee_pos: np.ndarray, duration: float, limits: Limits) -> dict:
+    """Path length, peak speed (raw tf samples: a glitch is one sample), peak jerk, the largest tf gap and the idle
+    time at the start and the end (the path resampled at RESAMPLE_HZ), over the episode's span."""
+    inside = (ee_t >= 0) & (ee_t <= duration)
+    t, p = ee_t[inside], ee_pos[inside]
+    out = {"path_m": 0.0, "peak_speed_mps": 0.0, "peak_speed_at_s": 0.0, "peak_jerk": 0.0, "max_tf_gap_s": 0.0,
+           "idle_start_s": duration, "idle_end_s": duration}
+    if len(t) < 2:
+        return out
+    step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    dt = np.diff(t)
+    moving = dt > 1e-6
+    speed = np.where(moving, step / np.where(moving, dt, 1.0), 0.0)
+    k = int(speed.argmax())
+    out.update(path_m=float(step.sum()), peak_speed_mps=float(speed[k]), peak_speed_at_s=float(t[k + 1]),
+               max_tf_gap_s=float(dt.max()))
+    grid = np.arange(0.0, duration + 1e-9, 1 / RESAMPLE_HZ)
+    q = np.stack([np.interp(grid, t, p[:, d]) for d in range(3)], 1)
+    v = np.linalg.norm(np.diff(q, axis=0), axis=1) * RESAMPLE_HZ
+    fast = np.flatnonzero(v > limits.idle_speed_mps)
+    if len(fast):
+        out["idle_start_s"] = float(grid[fast[0]])
+        out["idle_end_s"] = float(duration - grid[fast[-1] + 1])
+    if len(q) >= 4:
+        jerk = np.diff(q, n=3, axis=0) * RESAMPLE_HZ ** 3
+        out["peak_jerk"] = float(np.linalg.norm(jerk, axis=1).max())
+    return out
+
+
+def _gripper_events(g: np.ndarray) -> int | None:
+    """Opening and closing moves of the gripper joint: crossings of its range's middle, with hysteresis (a third of
+    the range either side), so sensor noise is not an event. None: no gripper joint."""
+    g = g[np.isfinite(g)]
+    if len(g) < 2:
+        return None
+    lo, hi = float(g.min()), float(g.max())
+    if hi - lo < 1e-3:
+        return 0
+    low, high = lo + (hi - lo) / 3, hi - (hi - lo) / 3
+    state, events = None, 0
+    for v in g:
+        new = "high" if v >= high else "low" if v <= low else state
+        if state is not None and new != state:
+            events += 1
+        state = new
+    return events
+
+
+def _depth_holes(fr: h5py.Group) -> float | None:
+    """The share of depth pixels without a return, over a few evenly spaced depth images."""
+    if "depth" not in fr or len(fr["depth"]) == 0:
+        return None
+    n = len(fr["depth"])
+    picks = np.unique(np.linspace(0, n - 1, min(n, DEPTH_SAMPLES)).round().astype(int))
+    return float(np.mean([(fr["depth"][int(i)] == 0).mean() for i in picks]))
+
+
+def flags(fig: dict, tolerance: float, limits: Limits) -> list[str]:
+    """The episode's problems, each with the figure and the threshold that raised it."""
+    out = []
+    if fig["frozen_run"] >= limits.frozen_frames:
+        out.append(f"frozen camera: {fig['frozen_run']} identical frames in a row from {fig['frozen_at_s']:.2f} s "
+                   f"(limit {limits.frozen_frames})")
+    interval = 1 / fig["fps"] if fig["fps"] else 0.0
+    if interval and fig["max_frame_gap_s"] > limits.gap_factor * interval:
+        out.append(f"frame gap: {fig['max_frame_gap_s']:.2f} s without a camera frame after "
+                   f"{fig['max_frame_gap_at_s']:.2f} s (median interval {interval:.3f} s)")
+    if fig["peak_speed_mps"] > limits.max_speed_mps:
+        out.append(f"tf glitch: the end effector moves at {fig['peak_speed_mps']:.1f} m/s at "
+                   f"{fig['peak_speed_at_s']:.2f} s (limit {limits.max_speed_mps} m/s)")
+    if fig["bridged_tf_gap"] or fig["max_tf_gap_s"] > limits.max_tf_gap_s:
+        out.append(f"tf gap: {fig['max_tf_gap_s']:.2f} s between end-effector tf samples (limit "
+                   f"{limits.max_tf_gap_s} s)")
+    for end in ("start", "end"):
+        if fig[f"idle_{end}_s"] > limits.idle_s:
+            out.append(f"idle {end}: {fig[f'idle_{end}_s']:.1f} s with the end effector below "
+                       f"{limits.idle_speed_mps} m/s (limit {limits.idle_s} s)")
+    for stream in ("tf", "joints", "depth"):
+        r = fig[f"sync_{stream}_s"]
+        if r is not None and r > tolerance:
+            out.append(f"sync: a frame is {r:.3f} s from the nearest {stream} sample (tolerance {tolerance} s)")
+    if fig["depth_holes"] is not None and fig["depth_holes"] > limits.depth_holes:
+        out.append(f"depth holes: {fig['depth_holes']:.0%} of depth pixels have no return (limit "
+                   f"{limits.depth_holes:.0%})")
+    return out
+
+
+def outlier_flags(figs: dict[str, dict], limits: Limits = Limits()) -> None:
+    """Add an outlier flag to every episode whose duration, path length, peak speed or frame rate lies beyond
+    limits.z robust z-scores (median and normal-scaled MAD, scipy) of its task's episodes and more than
+    limits.outlier_share of the median from it; tasks with fewer than MIN_FOR_OUTLIERS episodes are left alone."""
+    by_task: dict[str, list[str]] = {}
+    for name, f in figs.items():
+        by_task.setdefault(f["task"], []).append(name)
+    for names in by_task.values():
+        if len(names) < MIN_FOR_OUTLIERS:
+            continue
+        for key in OUTLIER_FIGURES:
+            v = np.array([figs[n][key] for n in names], float)
+            med, mad = float(np.median(v)), float(median_abs_deviation(v, scale="normal"))
+            if mad <= 0:
+                continue
+            for n, x in zip(names, v, strict=True):
+                z = (x - med) / mad
+                if abs(z) > limits.z and abs(x - med) > limits.outlier_share * abs(med):
+                    figs[n]["flags"].append(f"outlier: {key} {x:.3g} against the task's median {med:.3g} (robust z "
+                                            f"{z:+.1f}, limit {limits.z}, {len(names)} episodes)")
+
+
+def examine(path: str, names: list[str] | None = None, limits: Limits = Limits()) -> dict[str, dict]:
+    """Figures and flags of every named episode (all if None) of a dataset, an episode at a time."""
+    figs: dict[str, dict] = {}
+    with schema.open_dataset(path, names) as f:
+        for n in names if names is not None else schema.episode_names(f):
+            figs[n] = episode_figures(f[schema.EPISODES][n], limits)
+    outlier_flags(figs, limits)
+    return figs
+
+
+def summary_table(figs: dict[str, dict]) -> str:
+    """Markdown: per task, the episodes, how many are flagged, and the medians a curator compares."""
+    lines = ["| task | episodes | flagged | fps | duration s | path m | peak speed m/s | idle start s | idle end s | "
+             "repeated frames |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    tasks = sorted({f["task"] for f in figs.values()})
+    for task in tasks:
+        rows = [f for f in figs.values() if f["task"] == task]
+
+        def med(key: str, rows: list[dict] = rows) -> float:
+            return float(np.median([r[key] for r in rows]))
+
+        lines.append(f"| {task} | {len(rows)} | {sum(bool(r['flags']) for r in rows)} | {med('fps'):.1f} | "
+                     f"{med('duration_s'):.1f} | {med('path_m'):.2f} | {med('peak_speed_mps'):.2f} | "
+                     f"{med('idle_start_s'):.1f} | {med('idle_end_s'):.1f} | "
+                     f"{sum(r['repeated_frames'] for r in rows)} |")
+    return "\n".join(lines) + "\n"
+
+
+def flag_lines(figs: dict[str, dict]) -> list[str]:
+    return [f"{name}: {flag}" for name, f in figs.items() for flag in f["flags"]]
