@@ -228,3 +228,16 @@ def test_a_model_sees_both_cameras_and_evaluate_scores_each(tmp_path: Path) -> N
     line = one_line_error(run_module("train", "--model", "fm_cnn", *common, "--cameras", "scene", "side", "--out",
                                      tmp_path / "x"))
     assert "has no camera 'side'" in line
+
+
+def test_doctor_and_verify_read_a_two_camera_dataset(tmp_path: Path) -> None:
+    bag, out, _lay = _two_camera_dataset(tmp_path, "bag")
+    proc = run_module("doctor", out, "--verify", bag, check=True)
+    assert "1 episode(s) verified against their bags, 0 mismatch(es)" in proc.stdout  # the wrist camera too
+    with h5py.File(out) as f:
+        name = schema.episode_names(f)[0]
+        file = schema.episode_path(out, f, name)
+    with h5py.File(file, "r+") as f:
+        f["episodes"][name]["cameras/wrist/frames/T_base_camera"][2, 0, 3] += 0.01
+    proc = run_module("doctor", out, "--verify", bag)
+    assert proc.returncode == 1 and "cameras/wrist/frames/T_base_camera: 1 value(s) differ" in proc.stdout
