@@ -49,7 +49,6 @@ from .dataset.loader import (
     Normalizer,
     anchor_series,
     normalize_state,
-    observation,
     observation_from_arrays,
     relative_waypoints,
 )
@@ -59,7 +58,7 @@ from .errors import AdlError, run_cli
 from .outcomes import breakdown_lines, failure_strip, pick_failures
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
-from .policy.inference import predict
+from .policy.inference import label_of, predict, predict_episodes, steps_for
 from .runtime import Placement, add_device_args
 from .stats import median_cell, rate_cell, success_interval
 from .tables import FIXED
@@ -224,31 +223,6 @@ def camera_rate(f: h5py.File, name: str) -> float:
     return float(1.0 / np.median(np.diff(t))) if len(t) > 1 else 15.0
 
 
-def steps_for(family: str, fm_steps: list[int], dp_steps: list[int]) -> list[int]:
-    return {"fm": fm_steps, "meanflow": fm_steps, "ddpm": dp_steps}.get(family, [1])
-
-
-def label_of(model_dir: Path, method: str, family: str, steps: int) -> str:
-    return model_dir.name if family == "mse" else f"{model_dir.name}/{method}-{steps}"
-
-
-def predict_all(model_dir: Path, checkpoint: str, data: Path, names: list[str], fm_steps: list[int],
-                dp_steps: list[int], seed: int, placement: Placement) -> dict[str, np.ndarray]:
-    """label -> predicted (u, v, x, y, z) waypoints (E, N, 5) of a model for the named episodes, for each of its
-    step counts."""
-    policy, ck = load_policy(model_dir / checkpoint, placement)
-    norm = Normalizer(ck["stats"])
-    with h5py.File(data, "r") as f:
-        schema.check_horizon(model_dir, policy.cfg.horizon, f, data)
-        obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
-                                                        policy.cfg.use_depth, policy.cfg.cameras)) for n in names])
-    out = {}
-    for steps in steps_for(policy.family, fm_steps, dp_steps):
-        pred = norm.unnormalize(predict(policy, obs, steps, None, placement.generator(seed), placement))
-        out[label_of(model_dir, policy.default_method, policy.family, steps)] = pred.numpy()
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     from .sim.tasks import TASKS
     from .sim.world import SCENE_OBJECTS
@@ -341,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         except AdlError as exc:  # a test task without training episodes: no floor to state
             print(f"no blind baseline row: {exc}")
         for d in args.models:
-            trajs.update(predict_all(d, checkpoint, args.data, names, args.fm_steps, args.dp_steps, args.seed,
+            trajs.update(predict_episodes(d, checkpoint, args.data, names, args.fm_steps, args.dp_steps, args.seed,
                                      placement))
         speeds = demonstrated_speeds(args.data, split["train"]) if "fixed" in args.speed_profile else {}
         jobs = []

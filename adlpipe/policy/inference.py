@@ -5,10 +5,16 @@ from __future__ import annotations
 import random
 import statistics
 import time
+from pathlib import Path
 
+import h5py
+import numpy as np
 import torch
 
+from ..dataset import schema
+from ..dataset.loader import Normalizer, observation
 from ..runtime import Placement, synchronize, to_device
+from .checkpoint import load_policy
 from .models import Observation, Policy
 
 
@@ -70,3 +76,30 @@ def predict(policy: Policy, obs: Observation, steps: int, method: str | None, ge
     """Normalised samples on the CPU, computed on the placement's device and precision."""
     with placement.autocast():
         return policy.predict(to_device(obs, placement.device), steps, method, gen).cpu()
+
+
+def steps_for(family: str, fm_steps: list[int], dp_steps: list[int]) -> list[int]:
+    """The step counts a model is run at: FM and MeanFlow at fm_steps, DP at dp_steps, a regressor once."""
+    return {"fm": fm_steps, "meanflow": fm_steps, "ddpm": dp_steps}.get(family, [1])
+
+
+def label_of(model_dir: Path, method: str, family: str, steps: int) -> str:
+    """A policy's row label: the model folder, with its sampler and step count unless it is a regressor."""
+    return model_dir.name if family == "mse" else f"{model_dir.name}/{method}-{steps}"
+
+
+def predict_episodes(model_dir: Path, checkpoint: str, data: Path, names: list[str], fm_steps: list[int],
+                dp_steps: list[int], seed: int, placement: Placement) -> dict[str, np.ndarray]:
+    """label -> predicted (u, v, x, y, z) waypoints (E, N, 5) of a model for the named episodes, for each of its
+    step counts."""
+    policy, ck = load_policy(model_dir / checkpoint, placement)
+    norm = Normalizer(ck["stats"])
+    with h5py.File(data, "r") as f:
+        schema.check_horizon(model_dir, policy.cfg.horizon, f, data)
+        obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
+                                                        policy.cfg.use_depth, policy.cfg.cameras)) for n in names])
+    out = {}
+    for steps in steps_for(policy.family, fm_steps, dp_steps):
+        pred = norm.unnormalize(predict(policy, obs, steps, None, placement.generator(seed), placement))
+        out[label_of(model_dir, policy.default_method, policy.family, steps)] = pred.numpy()
+    return out
