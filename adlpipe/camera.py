@@ -62,24 +62,44 @@ def project(points: np.ndarray, K: np.ndarray, T_base_camera: np.ndarray, lens: 
             size: tuple[int, int] | None = None) -> np.ndarray:
     """Pixel coordinates (u, v) where base-frame points appear in the image of a camera at T_base_camera (ROS optical
     frame) with intrinsics K and `lens`. size (width, height): the lens model holds only over the image it was
-    calibrated on (outside, its polynomial folds back and grows without bound), so points whose pinhole projection
-    falls outside the image keep that pinhole projection."""
+    calibrated on (outside, its polynomial folds back and grows without bound), so a point keeps its pinhole
+    projection unless the lens still maps outward monotonically there and its distorted or its pinhole projection
+    lies in the image (a barrel lens shows at its edges points whose pinhole projection lies outside)."""
     pc = in_camera(points, T_base_camera)
     uv = pinhole(pc, K)
     if not lens.distorts:
         return uv
-    inside = np.ones(len(uv), bool) if size is None else (
-        (pc[:, 2] > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= size[0] - 0.5) & (uv[:, 1] >= -0.5)
-        & (uv[:, 1] <= size[1] - 0.5))
-    if not inside.any():
+    front = pc[:, 2] > 0
+    if not front.any():
         return uv
+    out = _distort(pc[front], K, lens)
+    if size is None:
+        uv[front] = out
+        return uv
+    # 1 % further out in normalised coordinates must land further from the principal point: else the polynomial
+    # has folded back and the distorted pixel is not where the point appears
+    wider = pc[front] * np.array([1.01, 1.01, 1.0])
+    centre = np.asarray(K, float)[:2, 2]
+    monotonic = np.linalg.norm(_distort(wider, K, lens) - centre, axis=1) > np.linalg.norm(out - centre, axis=1)
+    inside = (_in_image(out, size) | _in_image(uv[front], size)) & (
+        monotonic | (np.linalg.norm(pc[front][:, :2], axis=1) < 1e-9))
+    idx = np.flatnonzero(front)[inside]
+    uv[idx] = out[inside]
+    return uv
+
+
+def _in_image(uv: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    return (uv[:, 0] >= -0.5) & (uv[:, 0] <= size[0] - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= size[1] - 0.5)
+
+
+def _distort(pc: np.ndarray, K: np.ndarray, lens: Lens) -> np.ndarray:
+    """OpenCV's projection of camera-frame points through the lens."""
     zero = np.zeros(3)
     if lens.model == "equidistant":
-        out, _ = cv2.fisheye.projectPoints(pc[inside][:, None, :], zero, zero, np.asarray(K, float), lens.array())
+        out, _ = cv2.fisheye.projectPoints(pc[:, None, :], zero, zero, np.asarray(K, float), lens.array())
     else:
-        out, _ = cv2.projectPoints(pc[inside], zero, zero, np.asarray(K, float), lens.array())
-    uv[inside] = out.reshape(-1, 2)
-    return uv
+        out, _ = cv2.projectPoints(pc, zero, zero, np.asarray(K, float), lens.array())
+    return out.reshape(-1, 2)
 
 
 def read_lens(g: object) -> Lens:

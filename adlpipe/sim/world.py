@@ -244,3 +244,16 @@ def build_mjcf(spec: SceneSpec, width: int = 224, height: int = 224, markers: li
   <equality>{welds}</equality>
   <actuator>{actuators}</actuator>
 </mujoco>"""
+
+
+def arm_mjcf(tool: str | None = None) -> str:
+    """MJCF text of the ADL arm alone (with a held tool): the robot model the offline assessment replays predicted
+    trajectories on when a lab names no model of its own (adlpipe.offline.robot). Its end effector is the `tcp`
+    site, its base the world origin (base_link)."""
+    return f"""<mujoco model="adl_arm">
+  <compiler angle="radian"/>
+  <worldbody>
+    {_arm_xml(_tool_xml(tool))}
+  </worldbody>
+  <contact><exclude body1="hand" body2="finger_l"/><exclude body1="hand" body2="finger_r"/></contact>
+</mujoco>"""

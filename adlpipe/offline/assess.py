@@ -1,0 +1,132 @@
+"""Three answers per held-out recording and predicted trajectory, from what the recording holds (no simulated
+world): feasible on the robot, safe in the scene the camera saw, and does what the demonstration did.
+
+The demonstration itself is assessed first, on the same robot and scene: where its arm touched or went behind an
+observed surface are the task's intended contacts, and its gripper events, first and last contact and end pose are
+the key poses a prediction must reach in order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import h5py
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..camera import read_lens
+from .robot import Robot, Tolerances
+from .scene import DepthScene
+
+
+@dataclass(frozen=True)
+class Criteria:
+    """The stated tolerances of the three verdicts."""
+
+    robot: Tolerances = field(default_factory=Tolerances)
+    touch_m: float = 0.01  # a robot point this close to (or behind) an observed surface touches it
+    penetration_m: float = 0.02  # deeper behind an observed surface, outside the intended contact: unsafe
+    contact_margin_m: float = 0.03  # around the demonstration's own contact points, contact is intended
+    affordance_level: float = 0.3  # pixels of the affordance map above this are intended contact too
+    key_m: float = 0.03  # a key pose is reached when a waypoint comes this close
+
+
+@dataclass
+class Context:
+    """What an episode's recording gives every assessment of it: the robot's start, the scene, the intended
+    contact, the key poses."""
+
+    q0: np.ndarray
+    dt: float
+    scene: DepthScene
+    affordance: np.ndarray
+    contact: cKDTree | None  # robot points where the demonstration touched, base frame
+    keys: list[tuple[str, np.ndarray]]  # (what, position) in time order
+    demo: dict
+
+
+def _touches(robot: Robot, samples: dict, scene: DepthScene, Q: np.ndarray, crit: Criteria) -> list[np.ndarray]:
+    """Per waypoint: the robot's surface points that touch or lie behind an observed surface."""
+    out = []
+    for q in Q:
+        pts = robot.surface_points(q, samples)
+        beh = scene.behind(pts)
+        out.append(pts[np.nan_to_num(beh, nan=-np.inf) > -crit.touch_m])
+    return out
+
+
+def context(g: h5py.Group, robot: Robot, samples: dict, crit: Criteria) -> Context:
+    """The episode's start state, scene and the demonstration's own contacts and key poses."""
+    names = [str(n) for n in g["series/joint_pos"].attrs["joint_names"]]
+    q0 = robot.start_q(names, g["frames/joint_pos"][0].astype(float))
+    demo = np.asarray(g["traj3d"][()], float)
+    dt = float(g.attrs["duration_s"]) / (len(demo) - 1)
+    depth = g["depth"][()] if "depth" in g else np.full(g["rgb"].shape[:2], np.nan, np.float32)
+    scene = DepthScene.from_depth(depth, g["K"][()], g["T_base_camera"][()], read_lens(g),
+                                  robot.surface_points(q0, samples))
+    feas = robot.feasibility(demo, q0, dt, crit.robot)
+    touching = _touches(robot, samples, scene, feas.q, crit)
+    in_contact = [i for i, t in enumerate(touching) if len(t)]
+    contact = cKDTree(np.concatenate([touching[i] for i in in_contact])) if in_contact else None
+    keys = [(f"gripper event at {t:.1f} s", p) for t, p in gripper_events(g)]
+    if in_contact:
+        keys += [("contact start", demo[in_contact[0]]), ("contact end", demo[in_contact[-1]])]
+    keys = sorted(keys, key=lambda k: _time_of(demo, k[1]))
+    keys.append(("end pose", demo[-1]))
+    return Context(q0, dt, scene, g["affordance"][()], contact, keys,
+                   {"feasible": feas.feasible, "contact_waypoints": len(in_contact)})
+
+
+def _time_of(path: np.ndarray, p: np.ndarray) -> int:
+    return int(np.linalg.norm(path - p, axis=1).argmin())
+
+
+def gripper_events(g: h5py.Group) -> list[tuple[float, np.ndarray]]:
+    """(time, end-effector position) where the recorded gripper crosses the middle of its range (grasp or release),
+    with hysteresis (a third of the range either side)."""
+    fr = g["frames"]
+    grip, t, ee = fr["gripper"][()], fr["t"][()], fr["ee_pos"][()].astype(float)
+    ok = np.isfinite(grip)
+    if ok.sum() < 2 or np.ptp(grip[ok]) < 1e-3:
+        return []
+    lo, hi = float(np.nanmin(grip)), float(np.nanmax(grip))
+    low, high = lo + (hi - lo) / 3, hi - (hi - lo) / 3
+    state, out = None, []
+    for k in np.flatnonzero(ok):
+        new = "high" if grip[k] >= high else "low" if grip[k] <= low else state
+        if state is not None and new != state:
+            out.append((float(t[k]), ee[k]))
+        state = new
+    return out
+
+
+def assess(robot: Robot, samples: dict, ctx: Context, waypoints: np.ndarray, crit: Criteria) -> dict:
+    """The three verdicts of one predicted trajectory (N, 3), with their figures."""
+    feas = robot.feasibility(waypoints, ctx.q0, ctx.dt, crit.robot)
+    clearances, worst = [], 0.0
+    for q in feas.q:
+        pts = robot.surface_points(q, samples)
+        clearances.append(float(ctx.scene.clearance(pts).min()))
+        beh = ctx.scene.behind(pts)
+        uv = ctx.scene.pixels(pts)
+        allowed = ctx.affordance[uv[:, 1], uv[:, 0]] > crit.affordance_level
+        if ctx.contact is not None:
+            allowed |= ctx.contact.query(pts)[0] < crit.contact_margin_m
+        pen = beh[~allowed & np.isfinite(beh)]
+        worst = max(worst, float(pen.max(initial=0.0)))
+    reached, missed, start = [], [], 0
+    for what, p in ctx.keys:
+        d = np.linalg.norm(waypoints[start:] - p, axis=1)
+        hit = np.flatnonzero(d < crit.key_m)
+        if len(hit):
+            start += int(hit[0])
+            reached.append(what)
+        else:
+            missed.append(what)
+    safe = worst <= crit.penetration_m
+    return {"feasible": feas.feasible, "why_infeasible": feas.why, "reach_m": float(feas.residual_m.max()),
+            "limit_violations": feas.limit_violations, "max_joint_speed": feas.max_speed,
+            "max_joint_accel": feas.max_accel, "self_collisions": feas.self_collisions,
+            "safe": safe, "penetration_m": worst, "min_clearance_m": min(clearances),
+            "does_what_demo_did": not missed, "key_poses": len(ctx.keys), "missed": missed,
+            "pass": feas.feasible and safe and not missed}
