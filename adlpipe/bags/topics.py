@@ -63,10 +63,7 @@ class TopicMap:
         raw = read_small_yaml(Path(path), "topic map") or {}
         if not isinstance(raw, dict):
             raise AdlError(f"{path}: topic map must be a mapping of keys to topics")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(raw) - known)
-        if unknown:
-            raise AdlError(f"{path}: unknown topic-map keys {unknown}; known keys: {sorted(known)}")
+        _refuse_unknown_keys(f"{path}: unknown topic-map keys", raw, cls)
         for f in fields(cls):
             if f.name in raw:
                 _check_value(path, f.name, raw[f.name], f.type)
@@ -130,6 +127,14 @@ class CameraTopics:
     depth: str | None = None
 
 
+def _refuse_unknown_keys(what: str, given: dict, cls: type) -> None:
+    """One line listing the keys of `given` that are no field of the dataclass `cls`, with the known ones."""
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(given) - known)
+    if unknown:
+        raise AdlError(f"{what} {unknown}; known keys: {sorted(known)}")
+
+
 def _camera_entry(entry: object, k: int) -> CameraTopics:
     """One item of the topic map's `cameras` list, checked: one line naming the camera and the key otherwise."""
     if isinstance(entry, CameraTopics):
@@ -137,10 +142,7 @@ def _camera_entry(entry: object, k: int) -> CameraTopics:
     where = f"topic map: cameras[{k}]"
     if not isinstance(entry, dict):
         raise AdlError(f"{where} must be a mapping with name, image, camera_info and optional depth")
-    known = {f.name for f in fields(CameraTopics)}
-    unknown = sorted(set(entry) - known)
-    if unknown:
-        raise AdlError(f"{where}: unknown keys {unknown}; known keys: {sorted(known)}")
+    _refuse_unknown_keys(f"{where}: unknown keys", entry, CameraTopics)
     for key in ("name", "image", "camera_info"):
         if key not in entry:
             raise AdlError(f"{where}: key {key!r} is required")
