@@ -103,7 +103,7 @@ def gripper_events(g: h5py.Group) -> list[tuple[float, np.ndarray]]:
 def assess(robot: Robot, samples: dict, ctx: Context, waypoints: np.ndarray, crit: Criteria) -> dict:
     """The three verdicts of one predicted trajectory (N, 3), with their figures."""
     feas = robot.feasibility(waypoints, ctx.q0, ctx.dt, crit.robot)
-    clearances, worst = [], 0.0
+    clearances, worst, worst_at = [], 0.0, None
     for q in feas.q:
         pts = robot.surface_points(q, samples)
         clearances.append(float(ctx.scene.clearance(pts).min()))
@@ -112,8 +112,10 @@ def assess(robot: Robot, samples: dict, ctx: Context, waypoints: np.ndarray, cri
         allowed = ctx.affordance[uv[:, 1], uv[:, 0]] > crit.affordance_level
         if ctx.contact is not None:
             allowed |= ctx.contact.query(pts)[0] < crit.contact_margin_m
-        pen = beh[~allowed & np.isfinite(beh)]
-        worst = max(worst, float(pen.max(initial=0.0)))
+        unintended = ~allowed & np.isfinite(beh)
+        if unintended.any() and beh[unintended].max() > worst:
+            k = np.flatnonzero(unintended)[int(beh[unintended].argmax())]
+            worst, worst_at = float(beh[k]), pts[k].round(3).tolist()
     reached, missed, start = [], [], 0
     for what, p in ctx.keys:
         d = np.linalg.norm(waypoints[start:] - p, axis=1)
@@ -127,6 +129,6 @@ def assess(robot: Robot, samples: dict, ctx: Context, waypoints: np.ndarray, cri
     return {"feasible": feas.feasible, "why_infeasible": feas.why, "reach_m": float(feas.residual_m.max()),
             "limit_violations": feas.limit_violations, "max_joint_speed": feas.max_speed,
             "max_joint_accel": feas.max_accel, "self_collisions": feas.self_collisions,
-            "safe": safe, "penetration_m": worst, "min_clearance_m": min(clearances),
+            "safe": safe, "penetration_m": worst, "penetration_at": worst_at, "min_clearance_m": min(clearances),
             "does_what_demo_did": not missed, "key_poses": len(ctx.keys), "missed": missed,
             "pass": feas.feasible and safe and not missed}
