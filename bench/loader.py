@@ -3,7 +3,8 @@
     python bench/loader.py [--data data/adl.h5] [--batches 30] [--threads 2]
 
 Windows (To = 2 frames in, Tp = 16 waypoints at 10 Hz out, augmentation on, as training draws them) are loaded in
-the training process (DataLoader, no workers), from every frame of the dataset's episodes at random. A training step
+the training process (DataLoader, no workers) and with 2 workers, from every frame of the dataset's episodes at
+random, after a warm-up of about three windows per episode (a training run's steady state). A training step
 is forward, backward and AdamW of the closed-loop FM-CNN small preset on one batch (32), with --threads CPU threads.
 Without --data it records and ingests one MuJoCo ADL episode per task (128 px, 15 Hz) first.
 """
@@ -61,11 +62,14 @@ def main() -> None:
     ds = WindowDataset(data, names, stats, cfg.image_size, windows, augment=Augment(size))
     gen = torch.Generator().manual_seed(0)
     load_s = {}
+    # a training run draws thousands of batches: the first ones start the workers, open the episode files and read
+    # each episode's small arrays once; about three windows per episode warm every worker's caches first
+    warm = -(-3 * len(names) // a.batch_size) + 4
     for workers in a.workers:
-        sampler = RandomSampler(ds, replacement=True, num_samples=(a.batches + 4) * a.batch_size, generator=gen)
+        sampler = RandomSampler(ds, replacement=True, num_samples=(a.batches + warm) * a.batch_size, generator=gen)
         loader = DataLoader(ds, batch_size=a.batch_size, sampler=sampler, num_workers=workers)
         it = iter(loader)
-        batches = [next(it) for _ in range(4)]  # the first ones start the workers and open the files
+        batches = [next(it) for _ in range(warm)]
         t = time.perf_counter()
         for _ in range(a.batches):
             batches.append(next(it))
