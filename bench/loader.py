@@ -49,6 +49,7 @@ def main() -> None:
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--workers", type=int, nargs="+", default=[0, 2], help="DataLoader worker processes to measure")
+    p.add_argument("--open-files", type=int, default=32, help="episode files each loader process keeps open")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     data = a.data or make_data(Path(tempfile.mkdtemp(prefix="adlpipe-loader-")))
@@ -59,7 +60,7 @@ def main() -> None:
     stats = compute_window_stats(data, names, windows)
     cfg = preset("small", "fm_cnn", n_obs=2, horizon=16, rate_hz=10.0, state_dim=8, target="command")  # as train
     #                                                                                         --closed-loop
-    ds = WindowDataset(data, names, stats, cfg.image_size, windows, augment=Augment(size))
+    ds = WindowDataset(data, names, stats, cfg.image_size, windows, augment=Augment(size), open_files=a.open_files)
     gen = torch.Generator().manual_seed(0)
     load_s = {}
     # a training run draws thousands of batches: the first ones start the workers, open the episode files and read
@@ -87,7 +88,8 @@ def main() -> None:
         opt.step()
         times.append(time.perf_counter() - t)
     step_s = float(np.median(times[5:]))
-    print(f"{len(ds)} windows in {len(names)} episodes at {size} px; one training step of the small preset "
+    print(f"{len(ds)} windows in {len(names)} episodes at {size} px, {a.open_files} files open per process; one "
+          "training step of the small preset "
           f"(closed-loop FM-CNN, batch {a.batch_size}, {a.threads} threads): {1000 * step_s:.1f} ms")
     for workers, s in load_s.items():
         print(f"  {workers} loader workers: a batch every {1000 * s:.1f} ms ({a.batch_size / s:.0f} windows/s), "
