@@ -88,3 +88,17 @@ def test_the_stage_validates_its_verdicts_against_replay(ingested: Path, tmp_pat
     c = out["validation"]["pass_vs_success"]
     assert c["tp"] + c["fp"] + c["fn"] + c["tn"] == 3 and c["tp"] == sum(truth.values())
     assert "Validated against the simulated replay" in table.read_text()
+
+
+def test_a_labs_robot_model_from_a_file_and_a_wrong_site_is_one_line(tmp_path: Path) -> None:
+    from adlpipe.errors import AdlError
+
+    xml = tmp_path / "arm.xml"
+    xml.write_text(arm_mjcf())
+    robot = Robot(path=xml, ee_site="tcp")
+    assert robot.joints[:7] == ARM_JOINTS
+    with pytest.raises(AdlError, match="no site 'gripper_tip' for the end effector"):
+        Robot(path=xml, ee_site="gripper_tip")
+    (tmp_path / "bad.xml").write_text("<mujoco><worldbody><body></mujoco>")
+    with pytest.raises(AdlError, match="not a MuJoCo model"):
+        Robot(path=tmp_path / "bad.xml")

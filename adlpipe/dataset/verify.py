@@ -65,7 +65,13 @@ def topic_map_of(g: h5py.Group, config: list[Path] | None) -> TopicMap:
     if config:
         return TopicMap.load(config)
     text = str(g.attrs.get("topic_map", ""))
-    return TopicMap(**json.loads(text)) if text else TopicMap()
+    if not text:
+        return TopicMap()
+    try:
+        return TopicMap(**json.loads(text))
+    except (TypeError, ValueError) as exc:  # written by another adlpipe version
+        raise AdlError(f"episode {g.name.rpartition('/')[2]}: the topic map it was ingested with cannot be read by "
+                       f"this adlpipe ({' '.join(str(exc).split())[:80]}); pass the map with --config") from None
 
 
 def compare(stored: h5py.Group, fresh: h5py.Group, name: str) -> list[str]:
