@@ -68,7 +68,7 @@ def bad_data_files(root: Path) -> dict[str, Path]:
             "not-hdf5": root / "text.h5", "foreign-hdf5": root / "foreign.h5"}
 
 
-STAGES_WITH_DATA = ["split", "train", "evaluate", "replay", "inspect"]
+STAGES_WITH_DATA = ["split", "train", "evaluate", "replay", "inspect", "doctor", "edit", "assess"]
 
 
 def data_args(stage: str, w: dict[str, Path], data: Path, tmp: Path) -> list[object]:
@@ -80,6 +80,9 @@ def data_args(stage: str, w: dict[str, Path], data: Path, tmp: Path) -> list[obj
         "replay": ["--models", w["model"], "--data", data, "--split", w["split"], "--metrics", tmp / "r.json",
                    "--details", tmp / "rd.json", "--table", tmp / "t2.md"],
         "inspect": ["--model", w["model"], "--data", data, "--split", w["split"], "-o", tmp / "x.rrd"],
+        "doctor": [data, "--json", tmp / "doctor.json"],
+        "edit": [data, "-o", tmp / "edited.h5", "--drop", "x"],
+        "assess": ["--data", data, "--split", w["split"], "--details", tmp / "a.json", "--table", tmp / "a.md"],
     }[stage]
 
 
