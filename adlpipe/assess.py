@@ -86,6 +86,7 @@ def validation(verdicts: dict[str, dict[str, dict]], replay: dict) -> dict:
         if label not in success:
             continue
         both = [n for n in eps if n in success[label]]
+        both = [n for n in both if eps[n]["safe"] is not None]  # no depth image: safety was not assessed
         for n in both:
             forced = diags.get(label, {}).get(n, {}).get("peak_force_n", 0.0) > FORCE_LIMIT_N
             _count(unsafe, not eps[n]["safe"], forced)
@@ -110,12 +111,17 @@ def table(verdicts: dict[str, dict[str, dict]], check: dict | None) -> str:
              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for label, eps in verdicts.items():
         v = list(eps.values())
-        n = len(v)
-        clear = [100 * e["min_clearance_m"] for e in v]
-        lo, hi = median_interval(clear)
-        cells = [rate_cell(sum(e[k] for e in v), n) for k in ("feasible", "safe", "does_what_demo_did", "pass")]
-        lines.append(f"| {label} | {n} | {' | '.join(cells)} | {np.median(clear):.1f} [{lo:.1f}, {hi:.1f}] | "
-                     f"{100 * max(e['penetration_m'] for e in v):.1f} |")
+        seen = [e for e in v if e["safe"] is not None]  # episodes with a depth image
+        clear = [100 * e["min_clearance_m"] for e in seen]
+        # safety (and so all three) only where there was a depth image: its own n when some episode had none
+        of_seen = f" n={len(seen)}" if len(seen) != len(v) else ""
+        cells = [rate_cell(sum(e[k] for e in v), len(v)) if k in ("feasible", "does_what_demo_did")
+                 else rate_cell(sum(e[k] for e in seen), len(seen)) + of_seen
+                 for k in ("feasible", "safe", "does_what_demo_did", "pass")]
+        lo, hi = median_interval(clear) if clear else (np.nan, np.nan)
+        deepest = f"{100 * max(e['penetration_m'] for e in seen):.1f}" if seen else "-"
+        clearance = f"{np.median(clear):.1f} [{lo:.1f}, {hi:.1f}]" if clear else "- (no depth)"
+        lines.append(f"| {label} | {len(v)} | {' | '.join(cells)} | {clearance} | {deepest} |")
     out = "\n".join(lines) + "\n"
     if check:
         u, s = check["unsafe_vs_force"], check["pass_vs_success"]
@@ -191,7 +197,9 @@ def main(argv: list[str] | None = None) -> int:
                       args.table: title + table(verdicts, check)})
     for label, eps_v in verdicts.items():
         v = list(eps_v.values())
-        print(f"{label}: feasible {np.mean([e['feasible'] for e in v]):.0%}, safe {np.mean([e['safe'] for e in v]):.0%}"
+        seen = [e["safe"] for e in v if e["safe"] is not None]
+        safe = f"{np.mean(seen):.0%}" if seen else "not assessed (no depth)"
+        print(f"{label}: feasible {np.mean([e['feasible'] for e in v]):.0%}, safe {safe}"
               f", does what the demo did {np.mean([e['does_what_demo_did'] for e in v]):.0%}")
     return 0
 

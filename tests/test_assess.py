@@ -102,3 +102,23 @@ def test_a_labs_robot_model_from_a_file_and_a_wrong_site_is_one_line(tmp_path: P
     (tmp_path / "bad.xml").write_text("<mujoco><worldbody><body></mujoco>")
     with pytest.raises(AdlError, match="not a MuJoCo model"):
         Robot(path=tmp_path / "bad.xml")
+
+
+def test_without_a_depth_image_safety_is_not_assessed_rather_than_called_safe(ingested: Path, tmp_path: Path) -> None:
+    from conftest import copy_dataset
+
+    data = copy_dataset(ingested, tmp_path / "nodepth.h5")
+    with h5py.File(data) as f:
+        name = schema.episode_names(f)[0]
+        file = schema.episode_path(data, f, name)
+    with h5py.File(file, "r+") as f:
+        del f["episodes"][name]["depth"]
+    crit = Criteria()
+    with h5py.File(data) as f:
+        g = f["episodes"][name]
+        robot = Robot(arm_mjcf(TASKS[str(g.attrs["task"])].tool))
+        samples = surface_samples(robot.model)
+        ctx = context(g, robot, samples, crit)
+        v = assess(robot, samples, ctx, g["traj3d"][()].astype(float) - [0, 0, 0.2], crit)
+    assert v["safe"] is None and v["pass"] is None and v["min_clearance_m"] is None
+    assert v["feasible"] in (True, False) and not v["does_what_demo_did"]

@@ -43,6 +43,7 @@ class Context:
     contact: cKDTree | None  # robot points where the demonstration touched, base frame
     keys: list[tuple[str, np.ndarray]]  # (what, position) in time order
     demo: dict
+    seen: bool = True  # the recording has a depth image: without one, safety is not assessed (None), not "safe"
 
 
 def _touches(robot: Robot, samples: dict, scene: DepthScene, Q: np.ndarray, crit: Criteria) -> list[np.ndarray]:
@@ -74,7 +75,7 @@ def context(g: h5py.Group, robot: Robot, samples: dict, crit: Criteria) -> Conte
     keys = sorted(keys, key=lambda k: _time_of(demo, k[1]))
     keys.append(("end pose", demo[-1]))
     return Context(q0, dt, scene, g["affordance"][()], contact, keys,
-                   {"feasible": feas.feasible, "contact_waypoints": len(in_contact)})
+                   {"feasible": feas.feasible, "contact_waypoints": len(in_contact)}, seen="depth" in g)
 
 
 def _time_of(path: np.ndarray, p: np.ndarray) -> int:
@@ -125,10 +126,13 @@ def assess(robot: Robot, samples: dict, ctx: Context, waypoints: np.ndarray, cri
             reached.append(what)
         else:
             missed.append(what)
-    safe = worst <= crit.penetration_m
+    safe = worst <= crit.penetration_m if ctx.seen else None
+    if not ctx.seen:
+        worst, worst_at, clearances = None, None, [None]
     return {"feasible": feas.feasible, "why_infeasible": feas.why, "reach_m": float(feas.residual_m.max()),
             "limit_violations": feas.limit_violations, "max_joint_speed": feas.max_speed,
             "max_joint_accel": feas.max_accel, "self_collisions": feas.self_collisions,
-            "safe": safe, "penetration_m": worst, "penetration_at": worst_at, "min_clearance_m": min(clearances),
+            "safe": safe, "penetration_m": worst, "penetration_at": worst_at,
+            "min_clearance_m": min(clearances) if ctx.seen else None,
             "does_what_demo_did": not missed, "key_poses": len(ctx.keys), "missed": missed,
-            "pass": feas.feasible and safe and not missed}
+            "pass": None if safe is None else feas.feasible and safe and not missed}
