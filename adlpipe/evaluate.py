@@ -149,12 +149,11 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
     if cfg.closed_loop:
         raise AdlError(f"{model_dir}: a closed-loop model; evaluate measures first-frame ones (closed loop: "
                        "python -m adlpipe.replay --closed-loop, or python -m adlpipe.benchmark for Push-T)")
-    with schema.open_dataset(data, names=[]) as f:
-        schema.check_horizon(model_dir, cfg.horizon, f, data)
-    ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth, cameras=cfg.cameras)
     with schema.open_dataset(data, test) as f:
+        schema.check_horizon(model_dir, cfg.horizon, f, data)
         check_cameras(f, test, cfg.cameras, str(data))
         views = other_views(f, test)
+    ds = TrajectoryDataset(str(data), test, ck["stats"], cfg.image_size, cfg.use_depth, cameras=cfg.cameras)
     norm = Normalizer(ck["stats"])
     obs = torch.stack([ds[i][0] for i in range(len(ds))])
     gt = norm.unnormalize(torch.stack([ds[i][1] for i in range(len(ds))]))

@@ -15,6 +15,7 @@ import numpy as np
 from scipy.stats import median_abs_deviation
 
 from . import schema
+from .frames import nearest_index
 
 RESAMPLE_HZ = 50.0  # the end-effector path is resampled at this rate for speed, jerk and idle time
 DEPTH_SAMPLES = 8  # depth images per episode read for the share of holes
@@ -51,7 +52,8 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
     fig.update(_frozen(fr["rgb"], t))
     fig.update(_sync(g, t))
     fig.update(_motion(g["series/ee_t"][()], g["series/ee_pos"][()], duration, limits))
-    fig["gripper_events"] = _gripper_events(fr["gripper"][()])
+    crossings = gripper_crossings(fr["gripper"][()])
+    fig["gripper_events"] = None if crossings is None else len(crossings)
     fig["depth_holes"] = _depth_holes(fr)
     fig["bridged_tf_gap"] = "bridged" in str(g.attrs.get("note", ""))
     fig["flags"] = flags(fig, float(fr.attrs.get("sync_tolerance_s", 0.05)), limits)
@@ -81,9 +83,7 @@ def _nearest_gap(t: np.ndarray, stamps: np.ndarray) -> np.ndarray:
     """|t - the nearest of `stamps`| for each t (inf where there are none)."""
     if len(stamps) == 0:
         return np.full(len(t), np.inf)
-    s = np.sort(stamps)
-    j = np.clip(np.searchsorted(s, t), 1, len(s)) - 1
-    return np.minimum(np.abs(s[j] - t), np.abs(s[np.minimum(j + 1, len(s) - 1)] - t))
+    return np.abs(stamps[nearest_index(t, stamps, np.inf)] - t)
 
 
 def _sync(g: h5py.Group, t: np.ndarray) -> dict:
@@ -132,23 +132,24 @@ def _motion(ee_t: np.ndarray, ee_pos: np.ndarray, duration: float, limits: Limit
     return out
 
 
-def _gripper_events(g: np.ndarray) -> int | None:
-    """Opening and closing moves of the gripper joint: crossings of its range's middle, with hysteresis (a third of
-    the range either side), so sensor noise is not an event. None: no gripper joint."""
-    g = g[np.isfinite(g)]
-    if len(g) < 2:
+def gripper_crossings(grip: np.ndarray) -> list[int] | None:
+    """Indices into `grip` (the gripper joint per frame) where it crosses the middle of its range, opening or
+    closing, with hysteresis (a third of the range either side), so sensor noise is not an event. None: fewer than
+    two finite values (no gripper joint)."""
+    ok = np.flatnonzero(np.isfinite(grip))
+    if len(ok) < 2:
         return None
-    lo, hi = float(g.min()), float(g.max())
+    lo, hi = float(grip[ok].min()), float(grip[ok].max())
     if hi - lo < 1e-3:
-        return 0
+        return []
     low, high = lo + (hi - lo) / 3, hi - (hi - lo) / 3
-    state, events = None, 0
-    for v in g:
-        new = "high" if v >= high else "low" if v <= low else state
+    state, out = None, []
+    for k in ok:
+        new = "high" if grip[k] >= high else "low" if grip[k] <= low else state
         if state is not None and new != state:
-            events += 1
+            out.append(int(k))
         state = new
-    return events
+    return out
 
 
 def _depth_holes(fr: h5py.Group) -> float | None:

@@ -16,7 +16,7 @@ from ..bags.episode_reader import BagReadout, check_counts, read_bag
 from ..bags.images import decode_depth, decode_image
 from ..bags.reader import BagSource
 from ..bags.splits import recording_parts, split_note
-from ..bags.topics import TopicMap
+from ..bags.topics import CameraTopics, TopicMap
 from ..camera import Lens, lens_from_info, project
 from ..errors import AdlError
 from ..geometry import matrix_to_quat, resample, scale_intrinsics
@@ -101,7 +101,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         if a.ndim != 2:
             raise AdlError(f"{bag}: affordance map on {tm.affordance} must be single channel (32FC1)")
         aff_img = cv2.resize(np.nan_to_num(a), (size, size), interpolation=cv2.INTER_LINEAR)
-    cameras = [other_camera(r, tm, c.name, size, traj3d) for c in tm.extra_cameras]
+    cameras = [other_camera(r, tm, c, size, traj3d) for c in tm.extra_cameras]
     names, poses = object_poses(r, tm, camera_frame, [c.camera_frame for c in cameras])
     n_joints = len(r.joint_names) if r.joint_t else 0
     if n_joints and not np.isfinite(np.asarray(r.joint_pos, float)).all():
@@ -177,10 +177,11 @@ def _camera_pose(r: BagReadout, tm: TopicMap, camera_frame: str, t: float, which
     return T_bc
 
 
-def other_camera(r: BagReadout, tm: TopicMap, name: str, size: int, traj3d: np.ndarray) -> schema.CameraView:
+def other_camera(r: BagReadout, tm: TopicMap, cam: CameraTopics, size: int,
+                 traj3d: np.ndarray) -> schema.CameraView:
     """Another camera of the map: intrinsics at the stored size, lens, pose at the primary camera's first image
     (a wrist camera's pose is also stored per frame), and the trajectory in its pixels."""
-    cam = next(c for c in tm.extra_cameras if c.name == name)
+    name = cam.name
     seen = r.cameras[name]
     K0, frame, lens = _intrinsics(r, seen.info, seen.shape, seen.frame, cam.camera_info, cam.image)
     K = scale_intrinsics(K0, size / seen.shape[1], size / seen.shape[0])

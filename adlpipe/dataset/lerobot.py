@@ -211,7 +211,7 @@ class Export:
         images = {self.layout.image_key(schema.camera_names(g)[0]): ((fr["rgb"][k] for k in range(T)), 255.0)}
         blank = np.zeros((self.layout.size, self.layout.size), np.float32)
         for cam in self.layout.cameras[1:]:
-            cf = g[f"cameras/{cam}/frames"]
+            cf = g[f"{schema.CAMERAS}/{cam}/frames"]
             images[self.layout.image_key(cam)] = (_synced(cf["rgb"], cf["index"][()],
                                                           np.zeros((*blank.shape, 3), np.uint8)), 255.0)
         if self.layout.depth:

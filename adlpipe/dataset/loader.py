@@ -475,13 +475,16 @@ class WindowDataset(Dataset):
             return self._first_camera_images(g, m, k, idx)
         primary = schema.camera_names(g)[0]
         return np.concatenate([self._first_camera_images(g, m, k, idx) if c == primary
-                               else self._other_camera_images(g, c, idx) for c in self.cameras])
+                               else self._other_camera_images(g, m, c, idx) for c in self.cameras])
 
-    def _other_camera_images(self, g: h5py.Group, name: str, idx: list[int]) -> np.ndarray:
+    def _other_camera_images(self, g: h5py.Group, m: dict, name: str, idx: list[int]) -> np.ndarray:
         """Another camera's frames nearest the first camera's frames idx: RGB, a blank affordance channel (-1), its
-        own depth. A frame it has none for (index -1) takes its nearest earlier one, else its first."""
+        own depth. A frame it has none for (index -1) takes its nearest earlier one, else its first. Its sync
+        indices are read once per episode, into the episode's meta."""
         fr = g[f"{schema.CAMERAS}/{name}/frames"]
-        index = fr["index"][()]
+        if ("camera", name) not in m:
+            m[("camera", name)] = (fr["index"][()], fr["depth_index"][()] if "depth_index" in fr else None)
+        index, depth_index = m[("camera", name)]
         have = np.flatnonzero(index >= 0)
         if not len(have):
             raise AdlError(f"episode {g.name.rpartition('/')[2]}: camera {name} has no frame near any frame of the "
@@ -491,7 +494,7 @@ class WindowDataset(Dataset):
         out = []
         for i in idx:
             j = int(index[have[max(np.searchsorted(have, i, "right") - 1, 0)]])
-            d = int(fr["depth_index"][j]) if self.use_depth and "depth_index" in fr else -1
+            d = int(depth_index[j]) if self.use_depth and depth_index is not None else -1
             out.append(observation_from_arrays(fr["rgb"][j], blank, metres_from_mm(fr["depth"][d]) if d >= 0
                                                else None, size, self.use_depth))
         return np.concatenate(out)

@@ -74,7 +74,7 @@ def _write_dataset_recording(out: Path, data: Path, names: list[str]) -> int:
         eps = [f[schema.EPISODES][n] for n in names]
         # Rerun keeps images raw: RGB, depth and the affordance overlay, about 11 bytes a pixel
         check_recording_space(out, sum(int(np.prod(g["frames"]["rgb"].shape[:3])) * 11 for g in eps)
-                              + sum(int(np.prod(g[f"cameras/{c}/frames/rgb"].shape[:3])) * 3
+                              + sum(int(np.prod(g[f"{schema.CAMERAS}/{c}/frames/rgb"].shape[:3])) * 3
                                     for g in eps for c in schema.camera_names(g)[1:]))
         cameras = sorted({c for g in eps for c in schema.camera_names(g)[1:]})
         with atomic_path(out) as tmp:
@@ -178,7 +178,8 @@ def _other_camera(rec: rr.RecordingStream, g: object, name: str, ee: np.ndarray,
                   index: int) -> None:
     """Another camera's frames at its own stamps on dataset_time, with its pose (it may move) and the end effector
     as it sees it."""
-    c, fr = g[f"cameras/{name}"], g[f"cameras/{name}/frames"]
+    c = g[f"{schema.CAMERAS}/{name}"]
+    fr = c["frames"]
     K, size, lens = c["K"][()], int(fr["rgb"].shape[1]), read_lens(c)
     poses = fr["T_base_camera"][()]
     rec.log(f"world/cameras/{name}/image", rr.Pinhole(image_from_camera=K, resolution=[size, size]))

@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..camera import read_lens
+from ..dataset.doctor import gripper_crossings
 from .robot import Robot, Tolerances
 from .scene import DepthScene
 
@@ -83,22 +84,11 @@ def _time_of(path: np.ndarray, p: np.ndarray) -> int:
 
 
 def gripper_events(g: h5py.Group) -> list[tuple[float, np.ndarray]]:
-    """(time, end-effector position) where the recorded gripper crosses the middle of its range (grasp or release),
-    with hysteresis (a third of the range either side)."""
+    """(time, end-effector position) where the recorded gripper crosses the middle of its range (grasp or release;
+    doctor's gripper_crossings)."""
     fr = g["frames"]
-    grip, t, ee = fr["gripper"][()], fr["t"][()], fr["ee_pos"][()].astype(float)
-    ok = np.isfinite(grip)
-    if ok.sum() < 2 or np.ptp(grip[ok]) < 1e-3:
-        return []
-    lo, hi = float(np.nanmin(grip)), float(np.nanmax(grip))
-    low, high = lo + (hi - lo) / 3, hi - (hi - lo) / 3
-    state, out = None, []
-    for k in np.flatnonzero(ok):
-        new = "high" if grip[k] >= high else "low" if grip[k] <= low else state
-        if state is not None and new != state:
-            out.append((float(t[k]), ee[k]))
-        state = new
-    return out
+    t, ee = fr["t"][()], fr["ee_pos"][()].astype(float)
+    return [(float(t[k]), ee[k]) for k in gripper_crossings(fr["gripper"][()]) or []]
 
 
 def assess(robot: Robot, samples: dict, ctx: Context, waypoints: np.ndarray, crit: Criteria) -> dict:
