@@ -71,6 +71,7 @@ from .errors import AdlError, run_cli
 from .lock import exclusive
 from .policy.checkpoint import load_checkpoint, save_atomic
 from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, Observation, Policy, preset
+from .policy.nets.resnet import POOLS
 from .policy.objectives import Noise
 from .policy.optim import ADAMW_BETAS, EMA, WARMUP_STEPS, cosine_with_warmup
 from .runtime import (
@@ -244,7 +245,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     if horizon != cfg.horizon and not cfg.closed_loop:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
     train_names, val_names = split_validation(tasks, val_fraction, seed)
-    aug = Augment(stored_size) if augment else None  # windows without images skip it
+    aug = Augment(stored_size, crop=cfg.crop) if augment else None  # windows without images skip it
     stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed,
                                                 windows_per_epoch, open_files)
     norm = Normalizer(stats)
@@ -420,6 +421,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cameras", nargs="+", metavar="NAME",
                    help="the cameras the model sees, in order (names of the topic map's cameras list), each through "
                    "one shared image encoder; default: the first camera alone")
+    p.add_argument("--pool", choices=POOLS, default="avg",
+                   help="the image encoder's pooling: avg (global average; default) or spatial_softmax (32 "
+                   "keypoints, as Diffusion Policy, robomimic and LeRobot)")
+    p.add_argument("--crop", type=NON_NEGATIVE, default=0,
+                   help="the encoder sees a crop x crop window of the input: a random one in training, the centre "
+                   "at test (Diffusion Policy's Push-T: 84 of 96); replaces the random shift; default 0: none")
+    p.add_argument("--per-frame", action="store_true",
+                   help="each observation frame through the shared image encoder, features concatenated (Diffusion "
+                   "Policy); default: the frames stacked as channels into one encoder pass")
     p.add_argument("--target", choices=["command", "ee", "action"], default="command",
                    help="closed loop: command (the commanded end effector's waypoints relative to the command now: "
                    "the action stream's x, y, z; default), ee (the measured end effector's, relative to where it "
@@ -431,9 +441,12 @@ def main(argv: list[str] | None = None) -> int:
     device = resolve_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
-    overrides = {"use_depth": args.depth}
+    overrides = {"use_depth": args.depth, "pool": args.pool, "crop": args.crop, "per_frame": args.per_frame}
     if args.image_size:
         overrides["image_size"] = args.image_size
+    size = args.image_size or PRESETS[args.config].image_size
+    if args.crop and args.crop >= size:
+        raise AdlError(f"--crop {args.crop}: not smaller than the {size} px input (--image-size)")
     out = args.out or Path("models") / args.model
     refuse_pipeline_outputs([out, args.log], args.force)
     with schema.open_dataset(args.data, names=[]) as f:  # train() checks the split's episodes

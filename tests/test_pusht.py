@@ -59,12 +59,21 @@ def test_pusht_bags_carry_state_and_action_per_frame(pusht_data: Path) -> None:
 
 
 def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path) -> None:
-    for model in ("fm_cnn", "bc_cnn"):
+    # BC with the references' encoder (a random crop, spatial softmax, each frame through the encoder): the
+    # benchmark feeds it the whole image, which it centre-crops
+    encoders = {"fm_cnn": ["--image-size", "32"],
+                "bc_cnn": ["--image-size", "40", "--crop", "32", "--pool", "spatial_softmax", "--per-frame"]}
+    for model, encoder in encoders.items():
         run_module("train", "--model", model, "--closed-loop", "--target", "action", "--data",
                    pusht_data / "pusht.h5", "--split", pusht_data / "split.json", "--out", tmp_path / model,
-                   "--epochs", "2", "--image-size", "32", "--val-fraction", "0.34", check=True)
-    ck = __import__("torch").load(tmp_path / "fm_cnn" / "model.pt", weights_only=True)
+                   "--epochs", "2", "--val-fraction", "0.34", *encoder, check=True)
+    torch = __import__("torch")
+    ck = torch.load(tmp_path / "fm_cnn" / "model.pt", weights_only=True)
     assert ck["config"]["action_dim"] == 2 and ck["config"]["state_dim"] == 4 and ck["config"]["target"] == "action"
+    ref = torch.load(tmp_path / "bc_cnn" / "model.pt", weights_only=True)
+    assert {k: ref["config"][k] for k in ("image_size", "crop", "pool", "per_frame")} == {
+        "image_size": 40, "crop": 32, "pool": "spatial_softmax", "per_frame": True}
+    assert ref["ema"]["encoder.stem.0.weight"].shape[1] == 4  # one frame's channels per encoder pass
     out = tmp_path / "out"
     run_module("benchmark", "--models", tmp_path / "fm_cnn", tmp_path / "bc_cnn", "--steps", "2", "--episodes", "2",
                "--metrics", out / "m.json", "--details", out / "d.json", "--table", out / "t.md", check=True)

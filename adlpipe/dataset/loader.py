@@ -248,23 +248,32 @@ class TrajectoryDataset(Dataset):
 
 class Augment:
     """Training-time augmentation of an observation and its target, as Diffusion Policy's random crop and colour
-    jitter: a random shift of the whole image stack (edges replicated) by up to `shift` of its width, with the pixel
-    targets moved by the same amount at the stored size, and brightness, contrast and saturation jitter of the RGB
-    channels. The affordance map and depth move with the image and are not jittered."""
+    jitter: a random shift of the whole image stack (edges replicated) by up to `shift` of its width, or with `crop`
+    a random crop x crop window of it (the model centre-crops at test, so the shift is the window's offset from the
+    centre), with the pixel targets moved by the same amount at the stored size; and brightness, contrast and
+    saturation jitter of the RGB channels. The affordance map and depth move with the image and are not
+    jittered."""
 
-    def __init__(self, stored_size: int, shift: float = 0.06, jitter: float = 0.2) -> None:
-        self.stored_size, self.shift, self.jitter = stored_size, shift, jitter
+    def __init__(self, stored_size: int, shift: float = 0.06, jitter: float = 0.2, crop: int = 0) -> None:
+        self.stored_size, self.shift, self.jitter, self.crop = stored_size, shift, jitter, crop
 
     def __call__(self, obs: np.ndarray, target: np.ndarray, rng: np.random.Generator,
                  channels_per_frame: int) -> tuple[np.ndarray, np.ndarray]:
         c, s, _ = obs.shape
-        pad = max(1, int(round(self.shift * s)))
-        dx, dy = (int(v) for v in rng.integers(-pad, pad + 1, 2))
-        padded = np.pad(obs, ((0, 0), (pad, pad), (pad, pad)), mode="edge")
-        obs = padded[:, pad - dy:pad - dy + s, pad - dx:pad - dx + s].copy()
+        if self.crop and s > self.crop:
+            left, top = (int(v) for v in rng.integers(0, s - self.crop + 1, 2))
+            centre = (s - self.crop) // 2
+            dx, dy = centre - left, centre - top
+            obs = obs[:, top:top + self.crop, left:left + self.crop].copy()
+        else:
+            pad = max(1, int(round(self.shift * s)))
+            dx, dy = (int(v) for v in rng.integers(-pad, pad + 1, 2))
+            padded = np.pad(obs, ((0, 0), (pad, pad), (pad, pad)), mode="edge")
+            obs = padded[:, pad - dy:pad - dy + s, pad - dx:pad - dx + s].copy()
         target = target.copy()
         target[:, 0] += dx * self.stored_size / s
         target[:, 1] += dy * self.stored_size / s
+        s = obs.shape[-1]
         b, k, sat = 1 + rng.uniform(-self.jitter, self.jitter, 3)
         frames = obs.reshape(c // channels_per_frame, channels_per_frame, s, s)  # a view: edits land in obs
         rgb = (frames[:, :3] + 1) / 2  # the same jitter for every frame of the stack

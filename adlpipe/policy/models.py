@@ -69,14 +69,34 @@ class ModelConfig:
     use_image: bool = True  # False: no image encoder, the state alone conditions the network (Franka Kitchen)
     cameras: tuple[str, ...] = ()  # the cameras it sees, in order, each through the one shared encoder (features
     #                                concatenated, as Diffusion Policy does with several image keys); (): the first
+    pool: str = "avg"  # the encoder's pooling: "avg" (global average) or "spatial_softmax" (Diffusion Policy's)
+    crop: int = 0  # > 0: the encoder sees a crop x crop window: a random one in training (the loader's Augment), the
+    #                centre at validation, test and inference (here); 0: the whole image
+    per_frame: bool = False  # each observation frame through the shared encoder, features concatenated (Diffusion
+    #                          Policy); False: the To frames stacked as channels into one pass
 
     @property
     def views(self) -> int:
         return max(1, len(self.cameras))
 
     @property
+    def frame_channels(self) -> int:
+        return 5 if self.use_depth else 4
+
+    @property
     def in_channels(self) -> int:
-        return (5 if self.use_depth else 4) * self.n_obs
+        """Channels of one camera's observation stack (To frames)."""
+        return self.frame_channels * self.n_obs
+
+    @property
+    def encoder_channels(self) -> int:
+        """Channels of one encoder pass: a frame (per_frame) or a camera's whole stack."""
+        return self.frame_channels if self.per_frame else self.in_channels
+
+    @property
+    def encoder_passes(self) -> int:
+        """Encoder passes per observation, whose features are concatenated."""
+        return self.views * (self.n_obs if self.per_frame else 1)
 
     @property
     def closed_loop(self) -> bool:
@@ -147,8 +167,9 @@ class Policy(nn.Module):
         self.cfg = cfg
         self.kind, net = MODELS[cfg.model]
         self.objective = make_objective(self.kind)
-        self.encoder = ResNet18GN(cfg.in_channels, cfg.obs_dim, cfg.encoder_width) if cfg.use_image else None
-        cond = (cfg.obs_dim * cfg.views if cfg.use_image else 0) + cfg.state_dim
+        self.encoder = (ResNet18GN(cfg.encoder_channels, cfg.obs_dim, cfg.encoder_width, cfg.pool) if cfg.use_image
+                        else None)
+        cond = (cfg.obs_dim * cfg.encoder_passes if cfg.use_image else 0) + cfg.state_dim
         if net in ("unet", "unet_regressor"):
             self.net = ConditionalUnet1D(cfg.action_dim, cond, cfg.down_dims, cfg.kernel, cfg.groups)
             if net == "unet_regressor":
@@ -182,11 +203,18 @@ class Policy(nn.Module):
         return self.encode(obs)
 
     def encode(self, image: torch.Tensor) -> torch.Tensor:
-        """(B, views * C, S, S) -> (B, views * obs_dim): each camera's stack through the shared encoder."""
-        if self.cfg.views == 1:
+        """(B, views * C, S, S) -> (B, passes * obs_dim): each camera's stack (per_frame: each frame) through the
+        shared encoder. An image larger than the model's crop is centre-cropped (training windows come cropped at
+        random by the loader)."""
+        crop = self.cfg.crop
+        if crop and image.shape[-1] > crop:
+            top, left = (image.shape[-2] - crop) // 2, (image.shape[-1] - crop) // 2
+            image = image[..., top:top + crop, left:left + crop]
+        passes = self.cfg.encoder_passes
+        if passes == 1:
             return self.encoder(image)
         b, c, h, w = image.shape
-        return self.encoder(image.reshape(b * self.cfg.views, c // self.cfg.views, h, w)).reshape(b, -1)
+        return self.encoder(image.reshape(b * passes, c // passes, h, w)).reshape(b, -1)
 
     def loss(self, obs: Observation, action: torch.Tensor, noise: Noise | None = None,
              gen: torch.Generator | None = None) -> torch.Tensor:

@@ -5,6 +5,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from .spatial_softmax import SpatialSoftmax
+
+POOLS = ("avg", "spatial_softmax")
+
 
 def _norm(ch: int) -> nn.GroupNorm:
     return nn.GroupNorm(max(1, min(32, ch // 16)), ch)
@@ -31,9 +35,9 @@ class BasicBlock(nn.Module):
 
 class ResNet18GN(nn.Module):
     """[2, 2, 2, 2] basic blocks at widths w, 2w, 4w, 8w (w=64 is the standard ResNet-18, ~11M parameters);
-    global average pooling and a linear projection to `out_dim`."""
+    pooling (global average, or spatial softmax over 32 keypoints) and a linear projection to `out_dim`."""
 
-    def __init__(self, in_channels: int, out_dim: int, width: int = 64) -> None:
+    def __init__(self, in_channels: int, out_dim: int, width: int = 64, pool: str = "avg") -> None:
         super().__init__()
         self.stem = nn.Sequential(nn.Conv2d(in_channels, width, 7, 2, 3, bias=False), _norm(width),
                                   nn.ReLU(inplace=True), nn.MaxPool2d(3, 2, 1))
@@ -42,8 +46,11 @@ class ResNet18GN(nn.Module):
             layers += [BasicBlock(cin, cout, 1 if i == 0 else 2), BasicBlock(cout, cout, 1)]
             cin = cout
         self.layers = nn.Sequential(*layers)
-        self.proj = nn.Linear(cin, out_dim)
+        if pool not in POOLS:
+            raise ValueError(f"unknown pooling {pool!r}; pools: {POOLS}")
+        self.pool = SpatialSoftmax(cin) if pool == "spatial_softmax" else None
+        self.proj = nn.Linear(2 * self.pool.keypoints if self.pool else cin, out_dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = self.layers(self.stem(x))
-        return self.proj(h.mean(dim=(2, 3)))
+        return self.proj(self.pool(h) if self.pool is not None else h.mean(dim=(2, 3)))
