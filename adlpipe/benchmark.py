@@ -247,11 +247,16 @@ def plot_curves(curves: dict, refs: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def paired_lines(details: dict) -> list[str]:
-    """Every two rows of a details file compared on the initial conditions both ran: the paired bootstrap of the
-    per-episode score difference and McNemar's exact test on success."""
-    rows = {f"{r['model']}-{r['steps']}" + (f" ({r['checkpoint']})" if r.get("checkpoint", "last") != "last" else ""):
-            {e["seed"]: e for e in r["per_episode"]} for r in details.get("results", [])}
+def detail_rows(details: dict, prefix: str = "") -> dict[str, dict[int, dict]]:
+    """Row name -> {initial condition: its episode} of a details file's results."""
+    return {prefix + f"{r['model']}-{r['steps']}" + (f" ({r['checkpoint']})" if r.get("checkpoint", "last") != "last"
+                                                     else ""): {e["seed"]: e for e in r["per_episode"]}
+            for r in details.get("results", [])}
+
+
+def paired_lines(rows: dict[str, dict[int, dict]]) -> list[str]:
+    """Every two rows (detail_rows: of one details file, or of several merged) compared on the initial conditions
+    both ran: the paired bootstrap of the per-episode score difference and McNemar's exact test on success."""
     out = []
     names = list(rows)
     for i, a in enumerate(names):
@@ -262,7 +267,8 @@ def paired_lines(details: dict) -> list[str]:
             # higher scores are better: the difference of negated scores is "a lower" = "a better"
             d = paired_difference([-rows[a][s]["score"] for s in both], [-rows[b][s]["score"] for s in both])
             ok = paired_success([rows[a][s]["success"] for s in both], [rows[b][s]["success"] for s in both])
-            out.append(f"- {a} vs {b}: score {-d.mean:+.3f} [{-d.high:+.3f}, {-d.low:+.3f}], {a} better: "
+            mean, low, high = (0.0 - v for v in (d.mean, d.high, d.low))  # 0.0 - 0.0 prints +0.000, not -0.000
+            out.append(f"- {a} vs {b}: score {mean:+.3f} [{low:+.3f}, {high:+.3f}], {a} better: "
                        f"{d.verdict()}; success {ok}")
     return out
 
@@ -271,9 +277,10 @@ def main(argv: list[str] | None = None) -> int:
     p = Parser("python -m adlpipe.benchmark", __doc__)
     p.add_argument("--env", choices=sorted(BENCHMARKS), default="pusht")
     p.add_argument("--models", nargs="+", type=Path)
-    p.add_argument("--compare", type=Path, metavar="DETAILS",
-                   help="run nothing: compare every two rows of a details file written before, paired on the "
-                   "initial conditions both ran (bootstrap of the score difference, McNemar on success)")
+    p.add_argument("--compare", type=Path, nargs="+", metavar="DETAILS",
+                   help="run nothing: compare every two rows of a details file written before (or of several, "
+                   "their rows named by file), paired on the initial conditions both ran (bootstrap of the score "
+                   "difference, McNemar on success)")
     p.add_argument("--steps", nargs="+", type=int_range(1, 100), default=[2, 16],
                    help="sampling steps of the generative models (BC: its one prediction)")
     p.add_argument("--dp-sampler", choices=DDPM.methods, default="ddpm",
@@ -298,10 +305,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--curve-plot", type=Path, help="with --curve; default: reports/<env>_curves.png")
     args = p.parse_args(argv)
     if args.compare:
-        try:
-            print("\n".join(paired_lines(json.loads(args.compare.read_text()))))
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise AdlError(f"{args.compare}: not a benchmark details file ({type(exc).__name__}: {exc})") from exc
+        rows = {}
+        stems = [p.stem.removesuffix("_details") for p in args.compare]
+        for path, stem in zip(args.compare, stems, strict=True):  # several files: each row named by its file
+            prefix = "" if len(stems) == 1 else f"{stem}:" if stems.count(stem) == 1 else f"{path}:"
+            try:
+                rows.update(detail_rows(json.loads(path.read_text()), prefix))
+            except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+                raise AdlError(f"{path}: not a benchmark details file ({type(exc).__name__}: {exc})") from exc
+        print("\n".join(paired_lines(rows)))
         return 0
     if not args.models:
         p.error("--models is required (or --compare DETAILS)")

@@ -90,6 +90,10 @@ def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path
     compared = run_module("benchmark", "--compare", out / "d.json", check=True).stdout.splitlines()
     assert len(compared) == 6  # 4 rows (2 models x best/last), every pair, on the same 2 initial conditions
     assert any(ln.startswith("- fm_cnn-2 vs bc_cnn-1: score ") and "McNemar" in ln for ln in compared)
+    (out / "again_details.json").write_text((out / "d.json").read_text())  # two runs compared: rows by file
+    across = run_module("benchmark", "--compare", out / "d.json", out / "again_details.json", check=True)
+    assert len(across.stdout.splitlines()) == 28  # 8 rows
+    assert "- d:fm_cnn-2 vs again:fm_cnn-2: score +0.000 [+0.000, +0.000]" in across.stdout
     assert "not a benchmark details file" in one_line_error(run_module("benchmark", "--compare", out / "t.md"))
     refs = details["references"]
     assert refs["demonstrator"]["success"] == 1.0 and refs["demonstrator"]["score"] > 0.95
