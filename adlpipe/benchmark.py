@@ -83,7 +83,7 @@ def _policy(path: str) -> tuple:
 def _episode(job: tuple) -> tuple[str, str | int, int, dict]:
     from .policy.inference import predict
 
-    env, model_dir, checkpoint, path, steps, method, seed, execute = job
+    env, name, checkpoint, path, steps, method, seed, execute = job
     torch.set_num_threads(1)
     placement = Placement()
     policy, ck = _policy(path)
@@ -105,7 +105,7 @@ def _episode(job: tuple) -> tuple[str, str | int, int, dict]:
 
     outcome = BENCHMARKS[env].sim().run_policy(plan, seed, execute, cfg.n_obs, state_only=not cfg.use_image)
     outcome.pop("plans")
-    label = Path(model_dir).name + (f" ({method})" if method not in (None, "ddpm") else "")
+    label = name + (f" ({method})" if method not in (None, "ddpm") else "")
     return label, checkpoint, steps, {"seed": seed, **outcome, "ms": 1000.0 * float(np.median(seconds))}
 
 
@@ -124,6 +124,13 @@ def summary(episodes: list[dict], tasks: tuple[str, ...] = ()) -> dict:
     if tasks:
         out["tasks"] = {t: float(np.mean([t in e["tasks"] for e in episodes])) for t in tasks}
     return out
+
+
+def model_labels(dirs: list[Path]) -> list[str]:
+    """Each model's row label: its folder's name, or with its parent folder where two folders share a name (the
+    same model trained with two encoders: models/fm_cnn, models/refenc/fm_cnn)."""
+    names = [d.name for d in dirs]
+    return [n if names.count(n) == 1 else "/".join(d.resolve().parts[-2:]) for n, d in zip(names, dirs, strict=True)]
 
 
 def check_model(d: Path, bench: Benchmark) -> dict:
@@ -329,16 +336,18 @@ def main(argv: list[str] | None = None) -> int:
     bench.sim().make_env().close()  # the optional extra's absence: one line
     curve_eps = args.curve_episodes or args.episodes
     jobs, curve_jobs = [], []
-    for d in args.models:
+    if len(set(map(Path.resolve, args.models))) < len(args.models):
+        raise AdlError("--models: a model is named twice")
+    for d, name in zip(args.models, model_labels(args.models), strict=True):
         cfg = check_model(d, bench)
         method = args.dp_sampler if MODELS[cfg["model"]][0].startswith("ddpm") else None
         bc = cfg["model"].startswith("bc_")
         for steps in ([1] if bc else args.steps):
-            jobs += [(args.env, str(d), ck, str(d / CHECKPOINTS[ck]), steps, method, args.seed + i, args.execute)
+            jobs += [(args.env, name, ck, str(d / CHECKPOINTS[ck]), steps, method, args.seed + i, args.execute)
                      for ck in args.checkpoints for i in range(args.episodes)]
         if args.curve:
             steps = 1 if bc else args.curve_steps
-            curve_jobs += [(args.env, str(d), n, str(path), steps, method, args.seed + i, args.execute)
+            curve_jobs += [(args.env, name, n, str(path), steps, method, args.seed + i, args.execute)
                            for n, path in curve_checkpoints(d) for i in range(curve_eps)]  # checkpoint: its step
     per: dict = {}
     along: dict = {}

@@ -191,3 +191,11 @@ def test_the_state_variant_records_trains_from_memory_and_curves(pusht_data: Pat
     assert curve["last"]["checkpoints"] == 2 and curve["max"]["score"] == max(p["score"] for p in curve["points"])
     assert (res / "c.png").read_bytes()[:4] == b"\x89PNG"
     assert "Along training" in (res / "t.md").read_text()
+
+
+def test_two_model_folders_of_one_name_get_rows_of_their_own() -> None:
+    """The same model trained with two encoders (models/fm_cnn, models/refenc/fm_cnn) in one benchmark table."""
+    from adlpipe.benchmark import model_labels
+
+    dirs = [Path("models/fm_cnn"), Path("models/refenc/fm_cnn"), Path("models/bc_cnn")]
+    assert model_labels(dirs) == ["models/fm_cnn", "refenc/fm_cnn", "bc_cnn"]
