@@ -39,8 +39,11 @@ def run_module(module: str, *args: str, check: bool = False, timeout: float = 60
 
 def record_seeded_world(root: Path, world: str, episodes: int, size: int, test_fraction: float) -> Path:
     """A seeded benchmark world's demonstrations (initial conditions 0..episodes-1) recorded, ingested with
-    pipelines/<world>/topics.yaml into root/<world>.h5 and split into root/split.json."""
-    run_module("record", "--world", world, "--episodes", episodes, "--size", size, "--out", root / "bags", check=True)
+    pipelines/<world>/topics.yaml into root/<world>.h5 and split into root/split.json; what record printed is kept
+    in root/record.txt."""
+    proc = run_module("record", "--world", world, "--episodes", episodes, "--size", size, "--out", root / "bags",
+                      check=True)
+    (root / "record.txt").write_text(proc.stdout)
     run_module("ingest", *sorted((root / "bags").glob("*.mcap")), "-o", root / f"{world}.h5", "--size", size,
                "--config", REPO / "pipelines" / world / "topics.yaml", check=True)
     run_module("split", root / f"{world}.h5", "-o", root / "split.json", "--test-fraction", test_fraction,
