@@ -85,8 +85,8 @@ def validation(verdicts: dict[str, dict[str, dict]], replay: dict) -> dict:
     for label, eps in verdicts.items():
         if label not in success:
             continue
-        both = [n for n in eps if n in success[label]]
-        both = [n for n in both if eps[n]["safe"] is not None]  # no depth image: safety was not assessed
+        # both verdicts exist; an episode without a depth image had no safety verdict to check
+        both = [n for n in eps if n in success[label] and eps[n]["safe"] is not None]
         for n in both:
             forced = diags.get(label, {}).get(n, {}).get("peak_force_n", 0.0) > FORCE_LIMIT_N
             _count(unsafe, not eps[n]["safe"], forced)

@@ -444,9 +444,6 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {"use_depth": args.depth, "pool": args.pool, "crop": args.crop, "per_frame": args.per_frame}
     if args.image_size:
         overrides["image_size"] = args.image_size
-    size = args.image_size or PRESETS[args.config].image_size
-    if args.crop and args.crop >= size:
-        raise AdlError(f"--crop {args.crop}: not smaller than the {size} px input (--image-size)")
     out = args.out or Path("models") / args.model
     refuse_pipeline_outputs([out, args.log], args.force)
     with schema.open_dataset(args.data, names=[]) as f:  # train() checks the split's episodes
@@ -473,6 +470,8 @@ def main(argv: list[str] | None = None) -> int:
                        "(re-ingest with --waypoints 32)")
     overrides["horizon"] = horizon
     cfg = preset(args.config, args.model, **overrides)
+    if cfg.crop and cfg.crop >= cfg.image_size:
+        raise AdlError(f"--crop {cfg.crop}: not smaller than the {cfg.image_size} px input (--image-size)")
     split = args.split or args.data.with_name("split.json")
     lr = args.lr if args.lr is not None else PRESET_LR[args.config]
     with process_group(device) as ranks:  # under torchrun: one process per GPU (or CPU share), rank 0 writes

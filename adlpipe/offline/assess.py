@@ -118,7 +118,7 @@ def assess(robot: Robot, samples: dict, ctx: Context, waypoints: np.ndarray, cri
             missed.append(what)
     safe = worst <= crit.penetration_m if ctx.seen else None
     if not ctx.seen:
-        worst, worst_at, clearances = None, None, [None]
+        worst, worst_at = None, None
     return {"feasible": feas.feasible, "why_infeasible": feas.why, "reach_m": float(feas.residual_m.max()),
             "limit_violations": feas.limit_violations, "max_joint_speed": feas.max_speed,
             "max_joint_accel": feas.max_accel, "self_collisions": feas.self_collisions,
