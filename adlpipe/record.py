@@ -35,7 +35,6 @@ from .geometry import matrix_to_quat
 
 BASE_TIME_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z; episode k starts k*100 s later (deterministic bags)
 CAMERA_FRAME = "camera_color_optical_frame"
-MAX_ATTEMPTS = 8  # a demonstration whose success predicate still fails is re-sampled, as an operator would redo it
 # Push-T's topics: the camera has no depth, there is no affordance map or gripper; the policy's state and action.
 PUSHT_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint=None, ee_frame="agent", state="/pusht/state",
                         action="/pusht/action")
@@ -114,20 +113,14 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
 
 
 def _record_one(job: tuple) -> tuple[str, int, bool]:
-    from .sim.episode import record_demo, sample_balanced_scene
+    from .sim.episode import seeded_demo
     from .sim.tasks import TASK_NAMES
 
     task, idx, out, seed, fmt, image_format, depth_format, size, camera_hz = job
-    ti = TASK_NAMES.index(task)
-    for attempt in range(MAX_ATTEMPTS):
-        rng = np.random.default_rng([seed, ti, idx, attempt])
-        spec = sample_balanced_scene(task, rng)
-        st = record_demo(task, rng, size, size, camera_hz=camera_hz, spec=spec)
-        if st.success:
-            break
+    st = seeded_demo(task, seed, idx, size, camera_hz)
     path = Path(out) / f"{task.replace(' ', '_')}_{idx:04d}{FORMATS[fmt]}"
-    write_episode_bag(st, path, fmt, image_format, depth_format, episode_index=ti * 10000 + idx)
-    return str(path), attempt + 1, st.success
+    write_episode_bag(st, path, fmt, image_format, depth_format, episode_index=TASK_NAMES.index(task) * 10000 + idx)
+    return str(path), st.attempts, st.success
 
 
 def _seeded_world(name: str) -> object:

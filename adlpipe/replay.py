@@ -7,7 +7,11 @@ from its best validation checkpoint (--checkpoint best) unless told otherwise. S
 adlpipe.sim.tasks: no contact force on the manikin above 20 N, grasps within 1 cm, strokes in contact, the spoon
 held at the mouth, objects where they belong.
 
-Each test episode's scene is rebuilt from the initial object and manikin poses stored with it; the predicted 3D
+Scenes: --scenes N replays N fresh scenes per task (adlpipe.evaluation.scenes: the recorder's own scene generator at
+indices no recording uses, the first frame rendered by the recordings' camera and stored as ingest stores it;
+scene i of a task depends on (--scene-seed, task, i) alone, so every host replays the same scenes); without it,
+the recorded test split. Each test episode's scene is rebuilt from the initial object and manikin poses stored
+with it, a fresh scene from the poses it was drawn with; the predicted 3D
 trajectory (32 waypoints, base frame) is executed open loop over the demonstration's duration by the same arm
 controller and grasp rule that recorded the demonstrations. `demo` (the recorded trajectory itself) is always
 scored too, as the reference, and `blind` (each task's mean training trajectory, adlpipe.policy.blind) as the floor.
@@ -29,7 +33,7 @@ demonstration's duration has passed. Each TA is a row of the table (the seed's T
 
 from __future__ import annotations
 
-import json
+import argparse
 import multiprocessing
 import os
 import sys
@@ -37,196 +41,37 @@ from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-import h5py
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import POSITIVE, SEED, Parser, int_range
+from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, int_range
 from .dataset import schema
-from .dataset.loader import (
-    Normalizer,
-    anchor_series,
-    normalize_state,
-    observation_from_arrays,
-    relative_waypoints,
-)
 from .dataset.splits import load_split
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
+from .evaluation.replay import (
+    camera_rate,
+    closed_loop_one,
+    demonstrated_speeds,
+    every_task_first,
+    failure_table,
+    oracle_jobs,
+    path_length,
+    replay_one,
+    training_summary,
+)
+from .evaluation.scenes import ReplayScene, fresh_scene, from_episode
 from .outcomes import breakdown_lines, failure_strip, pick_failures
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
-from .policy.inference import label_of, predict, predict_episodes, steps_for
+from .policy.inference import label_of, predict_episodes, predict_scenes, steps_for
 from .runtime import Placement, add_device_args
-from .stats import median_cell, rate_cell, success_interval
+from .stats import rate_cell, success_interval
 from .tables import FIXED
 
 
-def _replay_one(job: tuple) -> tuple[str, str, str, bool, dict]:
-    from .sim.episode import replay_trajectory, spec_from_objects
-
-    label, name, task, names, objects, traj3d, duration = job
-    run = replay_trajectory(spec_from_objects(task, names, objects), traj3d, duration)
-    return label, name, task, run.success, {"failed": [k for k, ok in run.checks.items() if not ok],
-                                            "peak_force_n": round(float(run.peak_force_n), 2)}
-
-
-def _closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
-    """Closed-loop replay of one episode with one model, or with the oracle (runs in a pool process: loads the
-    model itself). The oracle's plans are the demonstration's own future waypoints in the model's target format,
-    normalised with its statistics: they take exactly the path a prediction takes from here on."""
-    from .sim.episode import replay_closed_loop, spec_from_objects
-
-    label, model_dir, checkpoint, ep, camera_hz, steps, execute, seed, placement, oracle = job
-    target = oracle[0] if oracle is not None else None
-    torch.set_num_threads(1)
-    policy, ck = load_policy(Path(model_dir) / checkpoint, placement)
-    cfg = policy.cfg
-    norm = Normalizer(ck["stats"])
-    gen = placement.generator(seed)
-    state_dim = cfg.state_dim // cfg.n_obs  # 4: tcp and gripper (3: a model trained before the gripper joined)
-
-    def predict_normalised(frames: list, elapsed: float) -> torch.Tensor:
-        if oracle is not None:
-            _, series_t, series_p = oracle
-            now = np.array([[np.interp(elapsed, series_t, series_p[:, d]) for d in range(3)]])
-            rel = relative_waypoints(np.array([elapsed]), now, series_t, series_p, cfg.horizon, cfg.rate_hz,
-                                     ep.K, ep.T_base_camera)
-            return norm.normalize(torch.from_numpy(rel))
-        image = np.concatenate([observation_from_arrays(rgb, ep.affordance, depth, cfg.image_size, cfg.use_depth)
-                                for rgb, depth, _, _ in frames])
-        state = np.stack([np.append(tcp, grip) for _, _, tcp, grip in frames])[:, :state_dim]
-        obs = (torch.from_numpy(image)[None], normalize_state(state, ck["stats"])[None])
-        return predict(policy, obs, steps, None, gen, placement)
-
-    def plan(frames: list, elapsed: float) -> np.ndarray:
-        """Offsets (Tp, 3) from the anchor, in metres: the unnormalised prediction's x, y, z."""
-        return norm.unnormalize(predict_normalised(frames, elapsed))[0, :, 2:].numpy()
-
-    spec = spec_from_objects(ep.task, ep.object_names, ep.objects)
-    run = replay_closed_loop(spec, plan, ep.duration_s, cfg.rate_hz, execute, cfg.n_obs, ep.rgb.shape[0], camera_hz,
-                             anchor="measured" if (target or cfg.target) == "ee" else "command")
-    demo_len = path_length(ep.ee_pos)
-    demo_at_rate = np.stack([np.interp(np.arange(0, ep.duration_s, 1 / cfg.rate_hz), ep.ee_t, ep.ee_pos[:, d])
-                             for d in range(3)], 1)
-    diag = {"failed": [k for k, ok in run.checks.items() if not ok], "peak_force_n": round(float(run.peak_force_n), 2),
-            "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - ep.ee_pos[-1])), 2),
-            "path_ratio": round(path_length(run.tcp_path) / demo_len, 3),
-            "still_s": round(longest_still(run.command_path, cfg.rate_hz), 2),
-            "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2)}
-    return label, ep.name, ep.task, run.success, diag
-
-
-STILL_M = 0.002  # a waypoint that moves less than this from the previous one (2 cm/s at 10 Hz) is standing still
-
-
-def longest_still(waypoints: np.ndarray, rate_hz: float) -> float:
-    """The longest stretch (s) of consecutive waypoints at rate_hz that each moved less than STILL_M: a stall where
-    the demonstration dwells only briefly (a grasp dwells 0.8 s)."""
-    still = np.linalg.norm(np.diff(waypoints, axis=0), axis=1) < STILL_M
-    best = run = 0
-    for s in still:
-        run = run + 1 if s else 0
-        best = max(best, run)
-    return best / rate_hz
-
-
-def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, data: Path, eps: list, rates: list[float],
-                formats: list[str], execute: list[int], placement: Placement) -> list[tuple]:
-    """Closed-loop jobs whose plans are each test demonstration's own future waypoints, in `model_dir`'s target
-    format (horizon, rate, statistics) with the anchor of each format: "command" relative to the last command,
-    "ee" relative to the measured tcp (the executor's ceiling for policies trained on each)."""
-    jobs = []
-    with schema.open_dataset(data, [ep.name for ep in eps]) as f:
-        series = {fmt: [anchor_series(f[schema.EPISODES][ep.name], fmt, f"{ep.source_path}")[:2] for ep in eps]
-                  for fmt in formats}
-    for fmt in formats:
-        for ta in execute:
-            if ta > horizon:
-                raise AdlError(f"--closed-loop {ta}: {model_dir} predicts only {horizon} waypoints")
-            jobs += [(f"oracle-{fmt}/Ta-{ta}", str(model_dir), checkpoint, ep, rate, 1, ta, 0, placement, (fmt, *s))
-                     for ep, rate, s in zip(eps, rates, series[fmt], strict=True)]
-    return jobs
-
-
-def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str, dict[str, bool]]) -> str:
-    """Where closed-loop rollouts fail: per policy, how many failed rollouts missed each part of the predicate,
-    how far the last command ended from the demonstration's end (median, cm), how much of the demonstration's path
-    length the arm travelled, and the longest time the command stood still against the demonstration's longest
-    dwell (medians over the failed rollouts)."""
-    parts = ["force", "touches", "stroke", "dwell", "placed"]
-    lines = ["\n## Where the failed rollouts fail\n",
-             "Failed rollouts per missed part of the predicate (a rollout may miss several); end error: the last "
-             "command from the demonstration's end; path: the arm's path length over the demonstration's; still: "
-             f"the longest stretch the command moved under {1000 * STILL_M:.0f} mm per waypoint, against the "
-             "demonstration's (medians over the failed rollouts, with their 95 % bootstrap intervals).\n",
-             "| policy | failed | " + " | ".join(parts) + " | end error cm | path | still s (demo) |",
-             "| --- | ---: |" + " ---: |" * (len(parts) + 3)]
-    for label, diags in diagnostics.items():
-        bad = [d for name, d in diags.items() if not per_episode[label].get(name, False)]
-        counts = " | ".join(str(sum(p in d["failed"] for d in bad)) for p in parts)
-        err = median_cell([d["end_error_cm"] for d in bad]) if bad else "-"
-        path = median_cell([d["path_ratio"] for d in bad], 2) if bad else "-"
-        still = (f"{median_cell([d['still_s'] for d in bad])} ({median_cell([d['demo_still_s'] for d in bad])})"
-                 if bad else "-")
-        lines.append(f"| {label} | {len(bad)} of {len(diags)} | {counts} | {err} | {path} | {still} |")
-    return "\n".join(lines) + "\n"
-
-
-def path_length(traj3d: np.ndarray) -> float:
-    return float(np.linalg.norm(np.diff(traj3d, axis=0), axis=1).sum())
-
-
-def demonstrated_speeds(data: Path, train: list[str]) -> dict[str, float]:
-    """task -> the median over its training demonstrations of path length / duration (m/s): the one speed a
-    deployed policy may run every predicted path at, knowing the task but not this scene's demonstration."""
-    per: dict[str, list[float]] = defaultdict(list)
-    with schema.open_dataset(data, train) as f:
-        for name in train:
-            g = f[schema.EPISODES][name]
-            per[str(g.attrs["task"])].append(path_length(g["traj3d"][()]) / max(float(g.attrs["duration_s"]), 1e-6))
-    return {t: float(np.median(v)) for t, v in per.items()}
-
-
-def every_task_first(data: Path, names: list[str], n: int) -> list[str]:
-    """n episodes taken round-robin over the tasks (in split order within a task): a subset that still covers
-    every task evenly."""
-    with schema.open_dataset(data, names=[]) as f:
-        task = {r["name"]: r["task"] for r in schema.read_catalog(f)}
-    per: dict[str, list[str]] = defaultdict(list)
-    for name in names:
-        per[task.get(name, "")].append(name)
-    out: list[str] = []
-    for k in range(max(len(v) for v in per.values())):
-        out += [v[k] for _t, v in sorted(per.items()) if k < len(v)]
-    return out[:n]
-
-
-def training_summary(models: list[Path]) -> dict[str, dict]:
-    """Each model's convergence as training wrote it (metrics.json), for the report."""
-    out = {}
-    for d in models:
-        try:
-            m = json.loads((d / "metrics.json").read_text())
-        except (OSError, ValueError):
-            continue  # a model folder without metrics: nothing to say about its convergence
-        out[d.name] = {k: m.get(k) for k in ("converged", "val_px_best", "val_px_best_ci", "optimizer_steps",
-                                            "epochs")}
-    return out
-
-
-def camera_rate(f: h5py.File, name: str) -> float:
-    """The recorded camera rate of an episode (median frame interval), at which closed-loop replay renders."""
-    t = f[schema.EPISODES][name]["frames/t"][()]
-    return float(1.0 / np.median(np.diff(t))) if len(t) > 1 else 15.0
-
-
-def main(argv: list[str] | None = None) -> int:
-    from .sim.tasks import TASKS
-    from .sim.world import SCENE_OBJECTS
-
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = Parser("python -m adlpipe.replay", __doc__)
     p.add_argument("--models", nargs="*", type=Path, default=[], help="model folders (holding model.pt)")
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
@@ -238,6 +83,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="best: the epoch with the lowest validation px (default); last: the final epoch")
     p.add_argument("--max-episodes", type=POSITIVE,
                    help="replay at most this many test episodes, taken round-robin over the tasks")
+    p.add_argument("--scenes", type=NON_NEGATIVE, default=0,
+                   help="open loop: replay this many fresh scenes per task of the test split instead of the recorded "
+                   "test episodes (0, default: the recorded test split)")
+    p.add_argument("--scene-seed", type=SEED, default=0,
+                   help="the recording seed the fresh scenes are drawn with (record --seed; default 0)")
+    p.add_argument("--scene-camera-size", type=int_range(16, 2048),
+                   help="the recordings' camera size in px (record --size) at which fresh scenes are rendered before "
+                   "they are resized as ingest resizes (default: the dataset's stored size)")
     p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1))
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--speed-profile", nargs="+", choices=["demo", "fixed"], default=["demo"],
@@ -259,18 +112,16 @@ def main(argv: list[str] | None = None) -> int:
     add_device_args(p, compile_option=True)
     p.add_force()
     args = p.parse_args(argv)
-    placement = Placement.from_args(args)
-    if min(args.fm_steps + args.dp_steps) < 1:
-        raise AdlError("--fm-steps and --dp-steps must be >= 1")
-    checkpoint = CHECKPOINTS[args.checkpoint]
-    check_outputs(args.metrics, args.details, args.table)
-    refuse_pipeline_outputs([args.metrics, args.details, args.table, args.failures], args.force)
-    split = load_split(args.split or args.data.with_name("split.json"))
-    names = split["test"]
-    if args.max_episodes and args.max_episodes < len(names):
-        names = every_task_first(args.data, names, args.max_episodes)
-    if not names:
-        raise AdlError("the test split is empty: nothing to replay")
+    if args.scenes and args.closed_loop:
+        raise AdlError("--scenes: fresh scenes are replayed open loop; closed loop replays the recorded test split")
+    return args
+
+
+def recorded_episodes(args: argparse.Namespace, names: list[str]) -> tuple[list, list[float]]:
+    """The named test episodes of the ADL world and their camera rates (one line for a foreign recording)."""
+    from .sim.tasks import TASKS
+    from .sim.world import SCENE_OBJECTS
+
     with schema.open_dataset(args.data, names) as f:
         eps = [schema.read_episode(f, n) for n in names]
         rates = [camera_rate(f, n) for n in names]
@@ -281,66 +132,104 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             raise AdlError(f"{ep.source_path}: frames {sorted(unknown)} are not objects of the ADL world; "
                            "replay works on bags recorded by adlpipe.record")
-    if args.closed_loop:
-        if not args.models:
-            raise AdlError("--closed-loop needs --models")
-        worker = _closed_loop_one
-        jobs = []
-        for i, d in enumerate(args.models):
-            policy = load_policy(d / checkpoint)[0]
-            if not policy.cfg.closed_loop:
-                raise AdlError(f"{d}: trained on first frames only; closed loop needs a model trained with "
-                               "python -m adlpipe.train --closed-loop")
-            if policy.cfg.target == "action":
-                raise AdlError(f"{d}: predicts the bags' action stream, not end-effector waypoints; run it with "
-                               "python -m adlpipe.benchmark (Push-T)")
-            if policy.cfg.views > 1:
-                raise AdlError(f"{d}: sees cameras {', '.join(policy.cfg.cameras)}; the ADL world renders one "
-                               "camera, so closed-loop replay cannot feed it")
-            if i == 0 and args.oracle:  # in the first model's format
-                jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, args.data, eps, rates, args.oracle,
-                                    args.closed_loop, placement)
-            for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
-                for ta in args.closed_loop:
-                    if ta > policy.cfg.horizon:
-                        raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
-                    label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}"
-                    jobs += [(label, str(d), checkpoint, ep, rate, steps, ta, args.seed, placement, None)
-                             for ep, rate in zip(eps, rates, strict=True)]
-    else:
-        worker = _replay_one
-        trajs = {"demo": np.stack([np.concatenate([ep.traj2d, ep.traj3d], 1) for ep in eps])}
-        try:
-            trajs[BLIND] = blind_predictions(task_means(args.data, split["train"]), [ep.task for ep in eps])
-        except AdlError as exc:  # a test task without training episodes: no floor to state
-            print(f"no blind baseline row: {exc}")
-        for d in args.models:
-            trajs.update(predict_episodes(d, checkpoint, args.data, names, args.fm_steps, args.dp_steps, args.seed,
-                                     placement))
-        speeds = demonstrated_speeds(args.data, split["train"]) if "fixed" in args.speed_profile else {}
-        jobs = []
-        for label, traj in trajs.items():
-            for i, ep in enumerate(eps):
-                if "demo" in args.speed_profile:
-                    jobs.append((label, ep.name, ep.task, ep.object_names, ep.objects, traj[i, :, 2:], ep.duration_s))
-                if "fixed" in args.speed_profile:
-                    if ep.task not in speeds:
-                        raise AdlError(f"--speed-profile fixed: no training episodes of task {ep.task!r}")
-                    duration = max(path_length(traj[i, :, 2:]) / speeds[ep.task], 1.0)
-                    jobs.append((label + FIXED, ep.name, ep.task, ep.object_names, ep.objects, traj[i, :, 2:],
-                                 duration))
+    return eps, rates
+
+
+def _fresh_one(job: tuple) -> ReplayScene:
+    return fresh_scene(*job)
+
+
+def fresh_scenes(args: argparse.Namespace, tasks: list[str]) -> list[ReplayScene]:
+    """args.scenes fresh scenes of each task, built in a pool (each runs the demonstrator once per draw)."""
+    from .sim.tasks import TASKS
+
+    unknown = [t for t in tasks if t not in TASKS]
+    if unknown:
+        raise AdlError(f"--scenes: task(s) {unknown} of {args.data} are not tasks of the MuJoCo ADL world")
+    with schema.open_dataset(args.data, names=[]) as f:
+        size, horizon = int(f.attrs["image_size"]), int(f.attrs["n_waypoints"])
+    jobs = [(t, i, args.scene_seed, args.scene_camera_size or size, size, horizon)
+            for t in tasks for i in range(args.scenes)]
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        return list(tqdm(pool.map(_fresh_one, jobs, chunksize=2), total=len(jobs), desc="scenes", unit="scene",
+                         file=sys.stderr, disable=None))
+
+
+def open_loop_jobs(args: argparse.Namespace, split: dict, scenes: list[ReplayScene], recorded: list[str] | None,
+                   checkpoint: str, placement: Placement) -> tuple[list[tuple], dict[str, np.ndarray]]:
+    """Every (policy, scene, timing) replay, with each policy's predicted waypoints (u, v, x, y, z) per scene."""
+    trajs = {"demo": np.stack([np.concatenate([s.traj2d, s.traj3d], 1) for s in scenes])}
+    try:
+        trajs[BLIND] = blind_predictions(task_means(args.data, split["train"]), [s.task for s in scenes])
+    except AdlError as exc:  # a test task without training episodes: no floor to state
+        print(f"no blind baseline row: {exc}")
+    for d in args.models:
+        if recorded is not None:
+            trajs.update(predict_episodes(d, checkpoint, args.data, recorded, args.fm_steps, args.dp_steps,
+                                          args.seed, placement))
+        else:
+            trajs.update(predict_scenes(d, checkpoint, scenes, args.fm_steps, args.dp_steps, args.seed, placement))
+    speeds = demonstrated_speeds(args.data, split["train"]) if "fixed" in args.speed_profile else {}
+    jobs = []
+    for label, traj in trajs.items():
+        for i, s in enumerate(scenes):
+            if "demo" in args.speed_profile:
+                jobs.append((label, s.name, s.task, s.object_names, s.objects, traj[i, :, 2:], s.duration_s))
+            if "fixed" in args.speed_profile:
+                if s.task not in speeds:
+                    raise AdlError(f"--speed-profile fixed: no training episodes of task {s.task!r}")
+                duration = max(path_length(traj[i, :, 2:]) / speeds[s.task], 1.0)
+                jobs.append((label + FIXED, s.name, s.task, s.object_names, s.objects, traj[i, :, 2:], duration))
+    return jobs, trajs
+
+
+def closed_loop_jobs(args: argparse.Namespace, eps: list, rates: list[float], checkpoint: str,
+                     placement: Placement) -> list[tuple]:
+    if not args.models:
+        raise AdlError("--closed-loop needs --models")
+    jobs = []
+    for i, d in enumerate(args.models):
+        policy = load_policy(d / checkpoint)[0]
+        if not policy.cfg.closed_loop:
+            raise AdlError(f"{d}: trained on first frames only; closed loop needs a model trained with "
+                           "python -m adlpipe.train --closed-loop")
+        if policy.cfg.target == "action":
+            raise AdlError(f"{d}: predicts the bags' action stream, not end-effector waypoints; run it with "
+                           "python -m adlpipe.benchmark (Push-T)")
+        if policy.cfg.views > 1:
+            raise AdlError(f"{d}: sees cameras {', '.join(policy.cfg.cameras)}; the ADL world renders one "
+                           "camera, so closed-loop replay cannot feed it")
+        if i == 0 and args.oracle:  # in the first model's format
+            jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, args.data, eps, rates, args.oracle,
+                                args.closed_loop, placement)
+        for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
+            for ta in args.closed_loop:
+                if ta > policy.cfg.horizon:
+                    raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
+                label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}"
+                jobs += [(label, str(d), checkpoint, ep, rate, steps, ta, args.seed, placement, None)
+                         for ep, rate in zip(eps, rates, strict=True)]
+    return jobs
+
+
+def run_jobs(worker, jobs: list[tuple], workers: int, placement: Placement) -> tuple[dict, dict, dict]:  # noqa: ANN001
+    """(label -> task -> outcomes, label -> scene -> success, label -> scene -> diagnosis)."""
     wins: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     per_episode: dict[str, dict[str, bool]] = defaultdict(dict)
     diagnostics: dict[str, dict[str, dict]] = defaultdict(dict)
     # CUDA cannot be used in a forked child of a process that has used it: closed-loop workers on a GPU are spawned
     context = multiprocessing.get_context("spawn") if placement.device.type == "cuda" else None
-    with ProcessPoolExecutor(max_workers=max(1, args.workers), mp_context=context) as pool:
+    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=context) as pool:
         for label, name, task, ok, diag in tqdm(pool.map(worker, jobs, chunksize=4), total=len(jobs),
                                                 desc="replay", unit="ep", file=sys.stderr, disable=None):
             wins[label][task].append(ok)
             per_episode[label][name] = bool(ok)
             if diag:
                 diagnostics[label][name] = diag
+    return wins, per_episode, diagnostics
+
+
+def success_summary(wins: dict[str, dict[str, list[bool]]]) -> dict[str, dict]:
     result = {}
     for label, per in wins.items():
         every = [o for v in per.values() for o in v]
@@ -348,8 +237,12 @@ def main(argv: list[str] | None = None) -> int:
                          "interval": list(success_interval(sum(every), len(every))),
                          "per_task": {t: float(np.mean(v)) for t, v in sorted(per.items())},
                          "per_task_n": {t: len(v) for t, v in sorted(per.items())}}
-    tasks = sorted({ep.task for ep in eps})
-    per_task_n = {t: sum(ep.task == t for ep in eps) for t in tasks}
+    return result
+
+
+def success_table(result: dict[str, dict], scenes: list, args: argparse.Namespace, where: str) -> str:
+    tasks = sorted({s.task for s in scenes})
+    per_task_n = {t: sum(s.task == t for s in scenes) for t in tasks}
     lines = ["| policy | overall [95 %] | n | " + " | ".join(f"{t} (n = {per_task_n[t]})" for t in tasks) + " |",
              "| --- | ---: | ---: |" + " ---: |" * len(tasks)]
     for label, r in result.items():
@@ -358,9 +251,13 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {label} | {rate_cell(round(r['overall'] * r['n']), r['n'])} | {r['n']} | {cells} |")
     mode = ("closed-loop (execute Ta of the predicted waypoints, then re-plan)" if args.closed_loop
             else "open-loop")
-    title = (f"# Success rate (%) of {mode} execution in MuJoCo, test split, {args.checkpoint} checkpoints\n\n"
-             "Success: the task's predicate, with any contact force on the manikin above 20 N a failure. Overall: "
-             "the rate with Wilson's 95 % interval over n scenes; per task likewise over its n scenes (few: wide).\n\n")
+    return (f"# Success rate (%) of {mode} execution in MuJoCo, {where}, {args.checkpoint} checkpoints\n\n"
+            "Success: the task's predicate, with any contact force on the manikin above 20 N a failure. Overall: "
+            "the rate with Wilson's 95 % interval over n scenes; per task likewise over its n scenes (few: wide).\n\n"
+            + "\n".join(lines) + "\n")
+
+
+def failure_sections(args: argparse.Namespace, diagnostics: dict, per_episode: dict) -> str:
     failures = failure_table(diagnostics, per_episode) if args.closed_loop else ""
     outcome = breakdown_lines(diagnostics, per_episode)
     if outcome:
@@ -368,29 +265,72 @@ def main(argv: list[str] | None = None) -> int:
                     "contact force on the person above 20 N (of all its episodes, Wilson's 95 % interval) and the "
                     "peak force over all of them; the failures missing each other part of the predicate (an episode "
                     "may miss several).\n\n" + "\n".join(outcome) + "\n" + failures)
+    return failures
+
+
+def failure_strips(folder: Path | None, scenes: list, trajs: dict, diagnostics: dict, per_episode: dict,
+                   strip: int) -> dict[Path, bytes]:
+    if folder is None:
+        return {}
     strips: dict[Path, bytes] = {}
-    if args.failures is not None and not args.closed_loop:
-        by_name = {ep.name: (i, ep) for i, ep in enumerate(eps)}
-        tasks_of = {ep.name: ep.task for ep in eps}
-        for label, diags in diagnostics.items():
-            if label.endswith(FIXED):
-                continue  # the same trajectories as the label's own strip, timed differently
-            picked = pick_failures(diags, per_episode[label], tasks_of, args.strip)
-            if picked:
-                traj = trajs[label.removesuffix(FIXED)]
-                strips[args.failures / f"{label.replace('/', '_')}.png"] = failure_strip(label, [
-                    {"task": tasks_of[n], "rgb": by_name[n][1].rgb, "demo_px": by_name[n][1].traj2d,
-                     "pred_px": traj[by_name[n][0], :, :2], **diags[n]} for n in picked])
+    by_name = {s.name: (i, s) for i, s in enumerate(scenes)}
+    tasks_of = {s.name: s.task for s in scenes}
+    for label, diags in diagnostics.items():
+        if label.endswith(FIXED):
+            continue  # the same trajectories as the label's own strip, timed differently
+        picked = pick_failures(diags, per_episode[label], tasks_of, strip)
+        if picked:
+            traj = trajs[label.removesuffix(FIXED)]
+            strips[folder / f"{label.replace('/', '_')}.png"] = failure_strip(label, [
+                {"task": tasks_of[n], "rgb": by_name[n][1].rgb, "demo_px": by_name[n][1].traj2d,
+                 "pred_px": traj[by_name[n][0], :, :2], **diags[n]} for n in picked])
+    return strips
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    placement = Placement.from_args(args)
+    checkpoint = CHECKPOINTS[args.checkpoint]
+    check_outputs(args.metrics, args.details, args.table)
+    refuse_pipeline_outputs([args.metrics, args.details, args.table, args.failures], args.force)
+    split = load_split(args.split or args.data.with_name("split.json"))
+    names = split["test"]
+    if args.max_episodes and args.max_episodes < len(names) and not args.scenes:
+        names = every_task_first(args.data, names, args.max_episodes)
+    if not names:
+        raise AdlError("the test split is empty: nothing to replay")
+    trajs: dict[str, np.ndarray] = {}
+    if args.scenes:
+        with schema.open_dataset(args.data, names) as f:
+            tasks = sorted({str(f[schema.EPISODES][n].attrs["task"]) for n in names})
+        scenes = fresh_scenes(args, tasks)
+        where = f"{args.scenes} fresh scenes per task (seed {args.scene_seed})"
+        jobs, trajs = open_loop_jobs(args, split, scenes, None, checkpoint, placement)
+        worker = replay_one
+    else:
+        eps, rates = recorded_episodes(args, names)
+        scenes = [from_episode(ep, ep.name) for ep in eps]
+        where = "test split"
+        if args.closed_loop:
+            worker, jobs = closed_loop_one, closed_loop_jobs(args, eps, rates, checkpoint, placement)
+        else:
+            worker = replay_one
+            jobs, trajs = open_loop_jobs(args, split, scenes, names, checkpoint, placement)
+    wins, per_episode, diagnostics = run_jobs(worker, jobs, args.workers, placement)
+    result = success_summary(wins)
+    strips = {} if args.closed_loop else failure_strips(args.failures, scenes, trajs, diagnostics, per_episode,
+                                                        args.strip)
+    kind = {"kind": "fresh", "per_task": args.scenes, "seed": args.scene_seed} if args.scenes else {"kind": "recorded"}
     write_all_atomic({**strips,
-        args.details: json_text({"episodes": len(eps), "checkpoint": args.checkpoint, "success": result,
-                                 "tasks": {ep.name: ep.task for ep in eps}, "per_episode": per_episode,
-                                 "diagnostics": diagnostics,
+        args.details: json_text({"episodes": len(scenes), "checkpoint": args.checkpoint, "scenes": kind,
+                                 "success": result, "tasks": {s.name: s.task for s in scenes},
+                                 "per_episode": per_episode, "diagnostics": diagnostics,
                                  "training": training_summary(args.models)}),
-        args.metrics: json_text({"episodes": len(eps), "checkpoint": args.checkpoint,
+        args.metrics: json_text({"episodes": len(scenes), "checkpoint": args.checkpoint, "scenes": kind["kind"],
                                  "success": {label: round(r["overall"], 4) for label, r in result.items()}}),
-        args.table: title + "\n".join(lines) + "\n" + failures})
+        args.table: success_table(result, scenes, args, where) + failure_sections(args, diagnostics, per_episode)})
     for label, r in result.items():
-        print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} episodes")
+        print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} {'scenes' if args.scenes else 'episodes'}")
     return 0
 
 

@@ -1,5 +1,9 @@
 """80/20 train/test split by episode, stratified per task, deterministic from a seed; stored beside the data.
 
+The split orders each task's episodes by their recording key (the bag's file name and segment), not by the
+episode names (the bags' sha256, which change when another host renders a pixel differently), so a re-recording
+anywhere gives the same split; the names stay the integrity check.
+
     python -m adlpipe.split data/adl.h5 [-o data/split.json] [--test-fraction 0.2] [--seed 0] [--skip-bad]
 
 Every stage after it reads the episodes the split names, so --skip-bad here is where a dataset with a damaged
@@ -15,7 +19,7 @@ from pathlib import Path
 from .atomic import check_outputs, write_json_atomic
 from .cli import SEED, Parser, float_range
 from .dataset import schema
-from .dataset.splits import make_split
+from .dataset.splits import make_split, recording_keys
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 
@@ -40,9 +44,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"adlpipe.split: skipped bad episode: {line}", file=sys.stderr)
     with schema.open_dataset(args.data, names) as f:
         tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in names or schema.episode_names(f)}
+        keys = recording_keys(f, list(tasks))
     if not tasks:
         raise AdlError(f"{args.data}: dataset has no {'readable ' if bad else ''}episodes")
-    split = make_split(tasks, args.test_fraction, args.seed)
+    split = make_split(tasks, args.test_fraction, args.seed, keys)
     split.update({"seed": args.seed, "test_fraction": args.test_fraction, "data": str(args.data)})
     if bad:
         split["skipped"] = bad

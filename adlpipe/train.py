@@ -65,7 +65,7 @@ from .dataset.loader import (
 )
 from .dataset.memory_windows import MAX_BYTES, MemoryBatches, memory_bytes
 from .dataset.sampling import EpochSampler, TrainingSamples
-from .dataset.splits import load_split, make_split
+from .dataset.splits import load_split, make_split, recording_keys
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 from .lock import exclusive
@@ -137,12 +137,13 @@ def converged(history: list[dict], tolerance: float = CONVERGENCE_TOLERANCE) -> 
     return bool(early) and min(v for _, v in vals) >= (1 - tolerance) * min(early)
 
 
-def split_validation(tasks: dict[str, str], fraction: float, seed: int) -> tuple[list[str], list[str]]:
+def split_validation(tasks: dict[str, str], fraction: float, seed: int,
+                     keys: dict[str, str] | None = None) -> tuple[list[str], list[str]]:
     """(train, val): a stratified, seeded part of the train split (tasks: episode -> task) held out for checkpoint
-    selection."""
+    selection, ordered by the recording keys as the split is."""
     if fraction <= 0:
         return list(tasks), []
-    parts = make_split(tasks, fraction, seed + 1)
+    parts = make_split(tasks, fraction, seed + 1, keys)
     return parts["train"], parts["test"]
 
 
@@ -241,10 +242,11 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     with schema.open_dataset(data, split["train"] + split["test"]) as f:
         horizon, stored_size = int(f.attrs["n_waypoints"]), int(f.attrs["image_size"])
         tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
+        keys = recording_keys(f, split["train"])
         check_cameras(f, split["train"] + split["test"], cfg.cameras, str(data))
     if horizon != cfg.horizon and not cfg.closed_loop:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
-    train_names, val_names = split_validation(tasks, val_fraction, seed)
+    train_names, val_names = split_validation(tasks, val_fraction, seed, keys)
     aug = Augment(stored_size, crop=cfg.crop) if augment else None  # windows without images skip it
     stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed,
                                                 windows_per_epoch, open_files)

@@ -174,7 +174,7 @@ def test_seeds_refuse_different_test_splits() -> None:
 def test_where_closed_loop_rollouts_fail_carries_intervals() -> None:
     """The failure-location table's medians (end error, path ratio, still time) print their bootstrap intervals,
     over the failed rollouts only."""
-    from adlpipe.replay import failure_table
+    from adlpipe.evaluation.replay import failure_table
 
     diags = {f"e{i}": {"failed": ["placed"] if i < 6 else [], "end_error_cm": 10.0 + i, "path_ratio": 0.5,
                        "still_s": 0.1 * i, "demo_still_s": 0.2} for i in range(8)}

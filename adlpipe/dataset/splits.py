@@ -5,21 +5,29 @@ from __future__ import annotations
 
 import json
 from collections import defaultdict
-from pathlib import Path
+from pathlib import Path, PurePath
 
+import h5py
 import numpy as np
 
 from ..errors import AdlError
+from . import schema
 
 
-def make_split(tasks: dict[str, str], test_fraction: float, seed: int) -> dict[str, list[str]]:
-    """tasks: episode name -> task. Every task with >= 2 episodes gets >= 1 test and >= 1 train episode."""
+def make_split(tasks: dict[str, str], test_fraction: float, seed: int,
+               keys: dict[str, str] | None = None) -> dict[str, list[str]]:
+    """tasks: episode name -> task. Every task with >= 2 episodes gets >= 1 test and >= 1 train episode.
+
+    keys: episode name -> what orders it within its task before the seeded shuffle (default: the name). The
+    split stage passes each episode's recording key (its bag's file name and segment), which a re-recording on
+    another host keeps, where the name (the bag's sha256) changes with every rendered pixel."""
+    keys = keys or {}
     by_task: dict[str, list[str]] = defaultdict(list)
     for name, task in tasks.items():
         by_task[task].append(name)
     train, test = [], []
     for i, task in enumerate(sorted(by_task)):
-        names = sorted(by_task[task])
+        names = sorted(by_task[task], key=lambda n: (keys.get(n, n), n))
         rng = np.random.default_rng([seed, i])
         order = [names[j] for j in rng.permutation(len(names))]
         n_test = int(round(test_fraction * len(names)))
@@ -30,6 +38,17 @@ def make_split(tasks: dict[str, str], test_fraction: float, seed: int) -> dict[s
         test += order[:n_test]
         train += order[n_test:]
     return {"train": sorted(train), "test": sorted(test)}
+
+
+def recording_keys(f: h5py.File, names: list[str]) -> dict[str, str]:
+    """episode name -> its recording key: the source bag's file name, with the segment for a bag of several
+    demonstrations. It does not depend on the host that recorded the bag (the sha256 does: see make_split)."""
+    out = {}
+    for n in names:
+        a = f[schema.EPISODES][n].attrs
+        seg = int(a.get("segment", -1))
+        out[n] = PurePath(str(a["source_path"])).name + (f"#{seg}" if seg >= 0 else "")
+    return out
 
 
 def load_split(path: Path) -> dict:

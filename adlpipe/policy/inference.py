@@ -12,7 +12,8 @@ import numpy as np
 import torch
 
 from ..dataset import schema
-from ..dataset.loader import Normalizer, observation
+from ..dataset.loader import Normalizer, observation, observation_from_arrays
+from ..errors import AdlError
 from ..runtime import Placement, synchronize, to_device
 from .checkpoint import load_policy
 from .models import Observation, Policy
@@ -98,6 +99,24 @@ def predict_episodes(model_dir: Path, checkpoint: str, data: Path, names: list[s
         schema.check_horizon(model_dir, policy.cfg.horizon, f, data)
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
                                                         policy.cfg.use_depth, policy.cfg.cameras)) for n in names])
+    out = {}
+    for steps in steps_for(policy.family, fm_steps, dp_steps):
+        pred = norm.unnormalize(predict(policy, obs, steps, None, placement.generator(seed), placement))
+        out[label_of(model_dir, policy.default_method, policy.family, steps)] = pred.numpy()
+    return out
+
+
+def predict_scenes(model_dir: Path, checkpoint: str, scenes: list, fm_steps: list[int], dp_steps: list[int],
+                   seed: int, placement: Placement) -> dict[str, np.ndarray]:
+    """predict_episodes for scenes held in memory (adlpipe.evaluation.scenes.ReplayScene: rgb, affordance, depth
+    at the dataset's stored size), fed through the same observation builder as a stored episode's first frame."""
+    policy, ck = load_policy(model_dir / checkpoint, placement)
+    cfg = policy.cfg
+    if cfg.cameras and len(cfg.cameras) > 1:
+        raise AdlError(f"{model_dir}: sees cameras {', '.join(cfg.cameras)}; the ADL world's scenes have one camera")
+    norm = Normalizer(ck["stats"])
+    obs = torch.stack([torch.from_numpy(observation_from_arrays(s.rgb, s.affordance, s.depth, cfg.image_size,
+                                                                cfg.use_depth)) for s in scenes])
     out = {}
     for steps in steps_for(policy.family, fm_steps, dp_steps):
         pred = norm.unnormalize(predict(policy, obs, steps, None, placement.generator(seed), placement))

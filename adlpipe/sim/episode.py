@@ -127,6 +127,7 @@ class Streams:
     joint_names: list[str] = field(default_factory=lambda: ARM_JOINTS + FINGER_JOINTS)
     success: bool = False
     duration: float = 0.0
+    attempts: int = 1  # scenes drawn until the demonstrator succeeded (seeded_demo)
     # A policy's own state and action streams (joint-space and Push-T data): (t, values), named per dimension
     states: list[tuple[float, np.ndarray]] = field(default_factory=list)
     actions: list[tuple[float, np.ndarray]] = field(default_factory=list)
@@ -205,6 +206,28 @@ def sample_balanced_scene(task_name: str, rng: np.random.Generator, max_attempts
             break
         spec = task.sample(rng)
     return in_mode(spec, float(rng.choice(task.modes)))
+
+
+MAX_ATTEMPTS = 8  # a demonstration whose success predicate still fails is re-sampled, as an operator would redo it
+# Scene indices from here on are never recorded (record caps --episodes at 100,000): replay's fresh scenes
+FRESH_INDEX0 = 1_000_000
+
+
+def seeded_demo(task_name: str, seed: int, index: int, size: int, camera_hz: float) -> Streams:
+    """The recorder's demonstration `index` of a task: its scene drawn from (seed, task, index, attempt), redrawn
+    (up to MAX_ATTEMPTS) while the demonstrator fails. The scene depends on these integers alone, never on the
+    host; replay's fresh scenes are the same draw at indices from FRESH_INDEX0."""
+    from .tasks import TASK_NAMES
+
+    ti = TASK_NAMES.index(task_name)
+    for attempt in range(MAX_ATTEMPTS):
+        rng = np.random.default_rng([seed, ti, index, attempt])
+        spec = sample_balanced_scene(task_name, rng)
+        st = record_demo(task_name, rng, size, size, camera_hz=camera_hz, spec=spec)
+        if st.success:
+            break
+    st.attempts = attempt + 1
+    return st
 
 
 def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, height: int = 224,

@@ -1,0 +1,187 @@
+"""The replay executor: open-loop and closed-loop jobs run in MuJoCo pool processes, and what replay tables of
+them (success per task, where closed-loop rollouts fail). The replay stage (adlpipe.replay) parses, calls, writes."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+
+from ..dataset import schema
+from ..dataset.loader import (
+    Normalizer,
+    anchor_series,
+    normalize_state,
+    observation_from_arrays,
+    relative_waypoints,
+)
+from ..errors import AdlError
+from ..policy.checkpoint import load_policy
+from ..policy.inference import predict
+from ..runtime import Placement
+from ..stats import median_cell
+
+
+def replay_one(job: tuple) -> tuple[str, str, str, bool, dict]:
+    from ..sim.episode import replay_trajectory, spec_from_objects
+
+    label, name, task, names, objects, traj3d, duration = job
+    run = replay_trajectory(spec_from_objects(task, names, objects), traj3d, duration)
+    return label, name, task, run.success, {"failed": [k for k, ok in run.checks.items() if not ok],
+                                            "peak_force_n": round(float(run.peak_force_n), 2)}
+
+
+def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
+    """Closed-loop replay of one episode with one model, or with the oracle (runs in a pool process: loads the
+    model itself). The oracle's plans are the demonstration's own future waypoints in the model's target format,
+    normalised with its statistics: they take exactly the path a prediction takes from here on."""
+    from ..sim.episode import replay_closed_loop, spec_from_objects
+
+    label, model_dir, checkpoint, ep, camera_hz, steps, execute, seed, placement, oracle = job
+    target = oracle[0] if oracle is not None else None
+    torch.set_num_threads(1)
+    policy, ck = load_policy(Path(model_dir) / checkpoint, placement)
+    cfg = policy.cfg
+    norm = Normalizer(ck["stats"])
+    gen = placement.generator(seed)
+    state_dim = cfg.state_dim // cfg.n_obs  # 4: tcp and gripper (3: a model trained before the gripper joined)
+
+    def predict_normalised(frames: list, elapsed: float) -> torch.Tensor:
+        if oracle is not None:
+            _, series_t, series_p = oracle
+            now = np.array([[np.interp(elapsed, series_t, series_p[:, d]) for d in range(3)]])
+            rel = relative_waypoints(np.array([elapsed]), now, series_t, series_p, cfg.horizon, cfg.rate_hz,
+                                     ep.K, ep.T_base_camera)
+            return norm.normalize(torch.from_numpy(rel))
+        image = np.concatenate([observation_from_arrays(rgb, ep.affordance, depth, cfg.image_size, cfg.use_depth)
+                                for rgb, depth, _, _ in frames])
+        state = np.stack([np.append(tcp, grip) for _, _, tcp, grip in frames])[:, :state_dim]
+        obs = (torch.from_numpy(image)[None], normalize_state(state, ck["stats"])[None])
+        return predict(policy, obs, steps, None, gen, placement)
+
+    def plan(frames: list, elapsed: float) -> np.ndarray:
+        """Offsets (Tp, 3) from the anchor, in metres: the unnormalised prediction's x, y, z."""
+        return norm.unnormalize(predict_normalised(frames, elapsed))[0, :, 2:].numpy()
+
+    spec = spec_from_objects(ep.task, ep.object_names, ep.objects)
+    run = replay_closed_loop(spec, plan, ep.duration_s, cfg.rate_hz, execute, cfg.n_obs, ep.rgb.shape[0], camera_hz,
+                             anchor="measured" if (target or cfg.target) == "ee" else "command")
+    demo_len = path_length(ep.ee_pos)
+    demo_at_rate = np.stack([np.interp(np.arange(0, ep.duration_s, 1 / cfg.rate_hz), ep.ee_t, ep.ee_pos[:, d])
+                             for d in range(3)], 1)
+    diag = {"failed": [k for k, ok in run.checks.items() if not ok], "peak_force_n": round(float(run.peak_force_n), 2),
+            "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - ep.ee_pos[-1])), 2),
+            "path_ratio": round(path_length(run.tcp_path) / demo_len, 3),
+            "still_s": round(longest_still(run.command_path, cfg.rate_hz), 2),
+            "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2)}
+    return label, ep.name, ep.task, run.success, diag
+
+
+STILL_M = 0.002  # a waypoint that moves less than this from the previous one (2 cm/s at 10 Hz) is standing still
+
+
+def longest_still(waypoints: np.ndarray, rate_hz: float) -> float:
+    """The longest stretch (s) of consecutive waypoints at rate_hz that each moved less than STILL_M: a stall where
+    the demonstration dwells only briefly (a grasp dwells 0.8 s)."""
+    still = np.linalg.norm(np.diff(waypoints, axis=0), axis=1) < STILL_M
+    best = run = 0
+    for s in still:
+        run = run + 1 if s else 0
+        best = max(best, run)
+    return best / rate_hz
+
+
+def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, data: Path, eps: list, rates: list[float],
+                formats: list[str], execute: list[int], placement: Placement) -> list[tuple]:
+    """Closed-loop jobs whose plans are each test demonstration's own future waypoints, in `model_dir`'s target
+    format (horizon, rate, statistics) with the anchor of each format: "command" relative to the last command,
+    "ee" relative to the measured tcp (the executor's ceiling for policies trained on each)."""
+    jobs = []
+    with schema.open_dataset(data, [ep.name for ep in eps]) as f:
+        series = {fmt: [anchor_series(f[schema.EPISODES][ep.name], fmt, f"{ep.source_path}")[:2] for ep in eps]
+                  for fmt in formats}
+    for fmt in formats:
+        for ta in execute:
+            if ta > horizon:
+                raise AdlError(f"--closed-loop {ta}: {model_dir} predicts only {horizon} waypoints")
+            jobs += [(f"oracle-{fmt}/Ta-{ta}", str(model_dir), checkpoint, ep, rate, 1, ta, 0, placement, (fmt, *s))
+                     for ep, rate, s in zip(eps, rates, series[fmt], strict=True)]
+    return jobs
+
+
+def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str, dict[str, bool]]) -> str:
+    """Where closed-loop rollouts fail: per policy, how many failed rollouts missed each part of the predicate,
+    how far the last command ended from the demonstration's end (median, cm), how much of the demonstration's path
+    length the arm travelled, and the longest time the command stood still against the demonstration's longest
+    dwell (medians over the failed rollouts)."""
+    parts = ["force", "touches", "stroke", "dwell", "placed"]
+    lines = ["\n## Where the failed rollouts fail\n",
+             "Failed rollouts per missed part of the predicate (a rollout may miss several); end error: the last "
+             "command from the demonstration's end; path: the arm's path length over the demonstration's; still: "
+             f"the longest stretch the command moved under {1000 * STILL_M:.0f} mm per waypoint, against the "
+             "demonstration's (medians over the failed rollouts, with their 95 % bootstrap intervals).\n",
+             "| policy | failed | " + " | ".join(parts) + " | end error cm | path | still s (demo) |",
+             "| --- | ---: |" + " ---: |" * (len(parts) + 3)]
+    for label, diags in diagnostics.items():
+        bad = [d for name, d in diags.items() if not per_episode[label].get(name, False)]
+        counts = " | ".join(str(sum(p in d["failed"] for d in bad)) for p in parts)
+        err = median_cell([d["end_error_cm"] for d in bad]) if bad else "-"
+        path = median_cell([d["path_ratio"] for d in bad], 2) if bad else "-"
+        still = (f"{median_cell([d['still_s'] for d in bad])} ({median_cell([d['demo_still_s'] for d in bad])})"
+                 if bad else "-")
+        lines.append(f"| {label} | {len(bad)} of {len(diags)} | {counts} | {err} | {path} | {still} |")
+    return "\n".join(lines) + "\n"
+
+
+def path_length(traj3d: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(traj3d, axis=0), axis=1).sum())
+
+
+def demonstrated_speeds(data: Path, train: list[str]) -> dict[str, float]:
+    """task -> the median over its training demonstrations of path length / duration (m/s): the one speed a
+    deployed policy may run every predicted path at, knowing the task but not this scene's demonstration."""
+    per: dict[str, list[float]] = defaultdict(list)
+    with schema.open_dataset(data, train) as f:
+        for name in train:
+            g = f[schema.EPISODES][name]
+            per[str(g.attrs["task"])].append(path_length(g["traj3d"][()]) / max(float(g.attrs["duration_s"]), 1e-6))
+    return {t: float(np.median(v)) for t, v in per.items()}
+
+
+def every_task_first(data: Path, names: list[str], n: int) -> list[str]:
+    """n episodes taken round-robin over the tasks (in split order within a task): a subset that still covers
+    every task evenly."""
+    with schema.open_dataset(data, names=[]) as f:
+        task = {r["name"]: r["task"] for r in schema.read_catalog(f)}
+    per: dict[str, list[str]] = defaultdict(list)
+    for name in names:
+        per[task.get(name, "")].append(name)
+    out: list[str] = []
+    for k in range(max(len(v) for v in per.values())):
+        out += [v[k] for _t, v in sorted(per.items()) if k < len(v)]
+    return out[:n]
+
+
+def training_summary(models: list[Path]) -> dict[str, dict]:
+    """Each model's convergence as training wrote it (metrics.json), for the report."""
+    out = {}
+    for d in models:
+        try:
+            m = json.loads((d / "metrics.json").read_text())
+        except (OSError, ValueError):
+            continue  # a model folder without metrics: nothing to say about its convergence
+        out[d.name] = {k: m.get(k) for k in ("converged", "val_px_best", "val_px_best_ci", "optimizer_steps",
+                                            "epochs")}
+    return out
+
+
+def camera_rate(f: h5py.File, name: str) -> float:
+    """The recorded camera rate of an episode (median frame interval), at which closed-loop replay renders."""
+    t = f[schema.EPISODES][name]["frames/t"][()]
+    return float(1.0 / np.median(np.diff(t))) if len(t) > 1 else 15.0
+
+

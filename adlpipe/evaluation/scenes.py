@@ -1,0 +1,94 @@
+"""The scenes a policy is replayed in: the recorded test split's, or fresh scenes drawn by the recorder's own
+scene generator at indices no recording uses, seen as a recording would have shown them.
+
+A fresh scene is what `record` would have written as demonstration FRESH_INDEX0 + i of its task (the same seeded
+draw, the same demonstrator that must succeed, the first frame rendered by the same camera at the recordings' size)
+and what `ingest` would have kept of it (the image resized with the same filters, the trajectory as 32 waypoints of
+the measured tcp over the same time span, the objects' initial poses), without writing a bag: its first frame goes
+to the policy exactly as a test episode's does. Scene i of a task depends on (seed, task, index) alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..camera import PINHOLE, project
+from ..dataset.schema import Episode
+from ..geometry import resample, scale_intrinsics
+
+
+@dataclass
+class ReplayScene:
+    """What replay needs of a scene: the first frame's inputs, the initial poses and the demonstration."""
+
+    name: str
+    task: str
+    rgb: np.ndarray  # (S, S, 3) uint8 at the dataset's stored size
+    affordance: np.ndarray  # (S, S) float32
+    depth: np.ndarray | None  # (S, S) metres, NaN: no return
+    object_names: list[str]
+    objects: np.ndarray  # (n, 7) x y z qw qx qy qz in the base frame
+    duration_s: float
+    traj3d: np.ndarray  # (N, 3) the demonstration's waypoints
+    traj2d: np.ndarray  # (N, 2) the same in the stored image's pixels
+
+
+def from_episode(ep: Episode, name: str) -> ReplayScene:
+    """A recorded test episode as a replay scene."""
+    return ReplayScene(name, ep.task, ep.rgb, ep.affordance, ep.depth, ep.object_names, ep.objects, ep.duration_s,
+                       ep.traj3d, ep.traj2d)
+
+
+def fresh_name(task: str, index: int) -> str:
+    return f"fresh/{task.replace(' ', '_')}/{index}"
+
+
+def fresh_scene(task: str, i: int, seed: int, camera_size: int, size: int, n_waypoints: int) -> ReplayScene:
+    """Fresh scene i of a task (recording index FRESH_INDEX0 + i), at the stored image size `size` of a dataset
+    recorded at `camera_size` px."""
+    from ..sim.episode import FRESH_INDEX0
+
+    return recorded_scene(task, FRESH_INDEX0 + i, seed, camera_size, size, n_waypoints)
+
+
+def recorded_scene(task: str, index: int, seed: int, camera_size: int, size: int, n_waypoints: int) -> ReplayScene:
+    """The scene of the recorder's demonstration `index` of a task, as ingest would have stored its first frame.
+    Only the first frame is rendered (the camera is asked for one frame per 1,000 s)."""
+    from ..sim.episode import DEPTH_RANGE_M, seeded_demo
+
+    st = seeded_demo(task, seed, index, camera_size, camera_hz=1e-3)
+    if not st.success:
+        raise RuntimeError(f"{task}: the demonstrator failed in every draw of scene {index}")
+    _t, rgb, depth = st.camera[0]
+    depth = depth.copy()
+    depth[depth > DEPTH_RANGE_M] = np.nan
+    ee_t = np.array([t for t, _p, _q in st.ee])
+    ee_p = np.array([p for _t, p, _q in st.ee])
+    traj3d = resample(ee_t, ee_p, 0.0, float(ee_t[-1]), n_waypoints)
+    K = scale_intrinsics(st.K, size / camera_size, size / camera_size)
+    names, poses = initial_poses(st)
+    return ReplayScene(
+        name=fresh_name(task, index), task=task,
+        rgb=cv2.resize(rgb, (size, size), interpolation=cv2.INTER_AREA).astype(np.uint8),
+        affordance=cv2.resize(st.affordance.astype(np.float32), (size, size), interpolation=cv2.INTER_LINEAR),
+        depth=cv2.resize(depth, (size, size), interpolation=cv2.INTER_NEAREST),
+        object_names=names, objects=poses, duration_s=float(ee_t[-1]), traj3d=traj3d,
+        traj2d=project(traj3d, K, st.T_base_camera, PINHOLE, (size, size)))
+
+
+def initial_poses(st) -> tuple[list[str], np.ndarray]:
+    """The frames a recording's tf gives at its first image, as ingest stores them (x y z qw qx qy qz): the moving
+    objects where the first frame saw them, the static ones (manikin, fixtures) at their spec pose."""
+    moving = st.objects[0][1] if st.objects else {}
+    out: dict[str, np.ndarray] = {}
+    for name, (x, y, z, yaw) in st.spec.poses.items():
+        if name in moving:
+            p, q = moving[name]
+            out[name] = np.concatenate([p, q])
+        else:
+            out[name] = np.array([x, y, z, np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+    names = sorted(out)
+    return names, np.array([out[n] for n in names]).reshape(-1, 7)
