@@ -31,7 +31,7 @@ from .errors import AdlError, read_json_object, run_cli
 from .outcomes import breakdown_lines
 from .policy.blind import BLIND
 from .stats import paired_difference, paired_success, rate_cell
-from .tables import FIXED, blind_lines, default_row, error_cell, rate_of, replay_label, share_cell
+from .tables import FIXED, blind_lines, default_row, error_cell, per_task_lines, rate_of, replay_label, share_cell
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
 AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px
@@ -422,6 +422,30 @@ def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> dict[Path, bytes]
     return made
 
 
+def read_table(path: Path) -> str:
+    """A markdown table a stage wrote, or one line naming the file that is not one."""
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise AdlError(f"{path}: cannot read it as a markdown table ({exc.__class__.__name__}: {exc})") from None
+
+
+def replay_scenes(rp: dict) -> str:
+    sc = rp.get("scenes", {})
+    if sc.get("kind") == "fresh":
+        return (f"{rp['episodes']} fresh scenes ({sc['per_task']} per task, drawn by the recorder's generator with "
+                f"seed {sc['seed']} at indices no recording uses)")
+    return f"{rp['episodes']} recorded test episodes"
+
+
+def grasp_tasks() -> set[str]:
+    """The ADL tasks that grip an object and put it somewhere, or carry a scoop to the mouth (no tool held
+    throughout that only strokes): those a blind mean trajectory rarely solves."""
+    from .sim.tasks import TASKS
+
+    return {t.name for t in TASKS.values() if t.tool is None or t.touches}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = Parser("python -m adlpipe.report", __doc__)
     p.add_argument("--eval", type=Path, default=Path("metrics/eval_details.json"))
@@ -441,12 +465,17 @@ def main(argv: list[str] | None = None) -> int:
     ev, rp = _load(args.eval), _load(args.replay)
     if "models" not in ev or "success" not in rp:
         raise AdlError(f"{args.eval} / {args.replay}: not evaluate/replay detail files (no 'models' / 'success')")
+    usable = [m for m in ev["models"] if default_row(ev, m) is not None] if isinstance(ev["models"], dict) else []
+    if not usable or not isinstance(rp["success"], dict) or not rp["success"]:
+        what = args.eval if not usable else args.replay
+        raise AdlError(f"{what}: holds no usable figures (no evaluated model rows / no replayed policy): nothing to "
+                       "report; re-run evaluate and replay")
     compared = claims(ev, rp)
     logs = {m: args.train_logs / f"{m}.csv" for m in ev["models"]}
     figs = figures(ev, logs, args.output.parent / "figures")
     parts = ["# adlpipe report", "",
-             f"Test episodes: {ev['n_test']} (error), {rp['episodes']} (replay, {rp.get('checkpoint', 'best')} "
-             "checkpoints). Figures of the best validation checkpoints with each model's default sampler.", "",
+             f"Test episodes: {ev['n_test']} (error); replay: {replay_scenes(rp)}, {rp.get('checkpoint', 'best')} "
+             "checkpoints. Figures of the best validation checkpoints with each model's default sampler.", "",
              "## Headline: each model's default sampler, best checkpoint", "", *headline_lines(ev, rp), "",
              "Replay success: open loop over the demonstration's own duration (which no deployed policy knows); at a "
              "fixed speed: the same trajectory over its own path length at the task's median demonstrated speed.",
@@ -459,7 +488,8 @@ def main(argv: list[str] | None = None) -> int:
              "## Figures", "", *[f"![{f.stem}](figures/{f.name})" for f in figs], ""]
     blind = blind_lines(ev, rp)
     if blind:
-        parts += ["## Above the blind baseline (paired, best checkpoints, default samplers)", "", *blind, ""]
+        parts += ["## Above the blind baseline (paired, best checkpoints, default samplers)", "", *blind, "",
+                  "### Scenes solved per task", "", *per_task_lines(ev, rp, grasp_tasks()), ""]
     outcome = breakdown_lines(rp.get("diagnostics", {}), rp.get("per_episode", {}))
     if outcome:
         strips = sorted(args.failures.glob("*.png")) if args.failures is not None and args.failures.is_dir() else []
@@ -475,10 +505,10 @@ def main(argv: list[str] | None = None) -> int:
     if cl:
         parts += ["## Closed loop vs open loop (success %)", "", *closed_loop_lines(rp, cl), ""]
     if args.table1.exists():
-        parts += ["## Table 1 in detail: every checkpoint, sampler and step count", "", args.table1.read_text(), ""]
+        parts += ["## Table 1 in detail: every checkpoint, sampler and step count", "", read_table(args.table1), ""]
     for t in (args.table2, args.table2_closed_loop):
         if t.exists():
-            parts += [t.read_text().replace("# ", "## ", 1), ""]
+            parts += [read_table(t).replace("# ", "## ", 1), ""]
     summary = {args.summary / f"{k}.json": v for k, v in summary_files(ev, rp, cl).items()} if args.summary else {}
     write_all_atomic({args.output: "\n".join(parts), **summary, **figs})
     print("\n".join(compared))

@@ -23,13 +23,13 @@ from .cli import Parser
 from .errors import AdlError, read_json_object, run_cli
 from .outcomes import breakdown_lines
 from .stats import rate_cell
-from .tables import FIXED, blind_lines, error_cell, rate_of, seeds_lines
+from .tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
 
-RUN_FILES = ("eval_details.json", "replay_details.json", "replay_closed_loop_details.json")
+RUN_FILES = ("eval_details.json", "replay_details.json", "replay_closed_loop_details.json")  # the last optional
 
 # (README row, model, evaluate's row key ("*": the model's lowest-px row), replay's label)
 DEFAULT_ROWS = (
-    ("demonstrations (recorded trajectories, 32 waypoints)", None, None, "demo"),
+    ("demonstrations (the demonstrator's measured path, 32 waypoints)", None, None, "demo"),
     ("FM-CNN, x1 output, 1 Euler step", "fm_cnn", "euler/1", "fm_cnn/euler-1"),
     ("FM-CNN, x1 output, 16 Euler steps", "fm_cnn", "euler/16", "fm_cnn/euler-16"),
     ("DP-CNN, clean-sample output, 16 DDPM steps (leading)", "dp_cnn", "ddpm/16", "dp_cnn/ddpm-16"),
@@ -105,7 +105,10 @@ def tables(results: Path) -> dict[str, str]:
     """name -> the markdown README shows between its marks."""
     run = results / "default"
     ev, rp = _load(run / RUN_FILES[0]), _load(run / RUN_FILES[1])
+    from .report import grasp_tasks
+
     out = {"default": default_table(ev, rp), "blind": blind_lines(ev, rp),
+           "per-task": per_task_lines(ev, rp, grasp_tasks()),
            "safety": breakdown_lines({k: v for k, v in rp.get("diagnostics", {}).items() if FIXED not in k},
                                      rp["per_episode"])}
     if (run / RUN_FILES[2]).exists():
@@ -145,9 +148,13 @@ def main(argv: list[str] | None = None) -> int:
                    "RESULTS/seeds/seeds.json")
     args = p.parse_args(argv)
     if args.save_from is not None:
-        for name in RUN_FILES:
+        present = [n for n in RUN_FILES if n in RUN_FILES[:2] or (args.save_from / n).exists()]
+        for name in present:
             _load(args.save_from / name)  # all readable before any is copied
-        for name in RUN_FILES:
+        stale = args.results / "default" / RUN_FILES[2]
+        if RUN_FILES[2] not in present and stale.exists():
+            stale.unlink()  # a closed loop of another run must not sit beside this one's figures
+        for name in present:
             with atomic_path(args.results / "default" / name) as tmp:
                 shutil.copyfile(args.save_from / name, tmp)
     if args.save_seeds is not None:

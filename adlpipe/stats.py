@@ -47,13 +47,40 @@ class PairedSuccess:
         return f"{self.only_first} : {self.only_second} discordant scenes, exact McNemar p = {self.p_value:.2f}"
 
 
+    n: int = 0  # scenes compared
+
+    def verdict(self, alpha: float = 1 - LEVEL) -> str:
+        """'better' / 'worse' (the first against the second) when McNemar's p is below alpha, otherwise 'not
+        resolved at n = N' with about how many scenes would resolve it if the discordant share and its split held."""
+        if self.p_value < alpha:
+            return "better" if self.only_first > self.only_second else "worse"
+        need = scenes_to_resolve(self.only_first, self.only_second, self.n, alpha)
+        return f"not resolved at n = {self.n}" + (f" (about {need} scenes would resolve it at this effect)"
+                                                   if need else " (no difference measured)")
+
+
 def paired_success(first: Sequence[bool], second: Sequence[bool]) -> PairedSuccess:
     """McNemar's exact test on paired outcomes (the same scenes, in the same order)."""
     if len(first) != len(second):
         raise ValueError(f"paired outcomes of different lengths: {len(first)} and {len(second)}")
     b = sum(bool(x) and not bool(y) for x, y in zip(first, second, strict=True))
     c = sum(bool(y) and not bool(x) for x, y in zip(first, second, strict=True))
-    return PairedSuccess(b, c, float(binomtest(b, b + c).pvalue) if b + c else 1.0)
+    return PairedSuccess(b, c, float(binomtest(b, b + c).pvalue) if b + c else 1.0, len(first))
+
+
+def scenes_to_resolve(b: int, c: int, n: int, alpha: float = 1 - LEVEL, limit: int = 100_000) -> int | None:
+    """The fewest scenes at which McNemar's exact test would reach p < alpha if b : c discordant scenes in n kept
+    their share and split (None: no difference, or more than `limit` scenes)."""
+    if n == 0 or b == c:
+        return None
+    share, split = (b + c) / n, b / (b + c)
+    m = n
+    while m <= limit:
+        k = round(share * m)
+        if k and binomtest(round(split * k), k).pvalue < alpha:
+            return m
+        m = max(m + 1, int(m * 1.05))
+    return None
 
 
 def mean_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float, float]:

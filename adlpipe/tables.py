@@ -40,14 +40,15 @@ def default_row(ev: dict, model: str) -> dict | None:
 
 
 def blind_lines(ev: dict, rp: dict) -> list[str]:
-    """How far each model is above the blind baseline, paired on the same test episodes: the px difference (model -
-    blind, negative: the model is better) with its bootstrap interval, and the success difference by McNemar."""
+    """How far each model is above the blind baseline, paired: the px difference on the test episodes (model -
+    blind, negative: the model is better) with its bootstrap interval, and the success on replay's scenes by
+    McNemar's exact test, with its verdict (and the scenes that would resolve it)."""
     blind = default_row(ev, BLIND)
     if blind is None or not blind.get("px_per_episode"):
         return []
     per = rp.get("per_episode", {})
-    lines = ["| model | px - blind px [95 %] | verdict: better than blind | success vs blind |",
-             "| --- | ---: | --- | --- |"]
+    lines = ["| model | px - blind px [95 %] | verdict: better than blind | success vs blind | verdict in success |",
+             "| --- | ---: | --- | --- | --- |"]
     for model in ev.get("models", {}):
         r = default_row(ev, model)
         if model == BLIND or r is None or not r.get("px_per_episode"):
@@ -55,15 +56,40 @@ def blind_lines(ev: dict, rp: dict) -> list[str]:
         d = paired_difference(r["px_per_episode"], blind["px_per_episode"])
         a, b = per.get(replay_label(model, r), {}), per.get(BLIND, {})
         both = sorted(set(a) & set(b))
-        vs = "-"
+        vs, verdict = "-", "-"
         if both:
             test = paired_success([a[n] for n in both], [b[n] for n in both])
             sa, sb = sum(a[n] for n in both), sum(b[n] for n in both)
             vs = f"{100 * sa / len(both):.0f} vs {100 * sb / len(both):.0f} % ({test})"
-        lines.append(f"| {model} | {d.mean:+.2f} [{d.low:+.2f}, {d.high:+.2f}] | {d.verdict()} | {vs} |")
+            verdict = {"better": "beats blind", "worse": "below blind"}.get(test.verdict(), test.verdict())
+        lines.append(f"| {model} | {d.mean:+.2f} [{d.low:+.2f}, {d.high:+.2f}] | {d.verdict()} | {vs} | {verdict} |")
+    scenes = rp.get("scenes", {})
+    where = (f"{rp['episodes']} fresh scenes ({scenes.get('per_task')} per task)" if scenes.get("kind") == "fresh"
+             else f"{rp['episodes']} test episodes")
     return lines + ["", f"Blind: {blind['px']:.2f} px, {blind['cm']:.2f} cm over {blind['n']} test episodes; replay "
-                    f"{rate_of(rp.get('success', {}).get(BLIND))}. A model that is not better than blind has learnt "
-                    "nothing from the image that the task name does not give."]
+                    f"{rate_of(rp.get('success', {}).get(BLIND))} on {where}. A model that is not better than blind "
+                    "has learnt nothing from the image that the task name does not give."]
+
+
+def per_task_lines(ev: dict, rp: dict, grasp: set[str]) -> list[str]:
+    """Scenes solved per task (k of n) by each model's default sampler and by the blind baseline, on replay's
+    scenes (the demonstration's duration); a task that needs a grasp or a placement is marked *."""
+    success = rp.get("success", {})
+    labels = [BLIND] + [replay_label(m, r) for m in ev.get("models", {}) if m != BLIND
+                        for r in [default_row(ev, m)] if r is not None]
+    labels = [x for x in labels if x in success]
+    if not labels:
+        return []
+    tasks = sorted({t for x in labels for t in success[x]["per_task"]})
+    lines = ["| policy | " + " | ".join(f"{t}{' *' if t in grasp else ''}" for t in tasks) + " |",
+             "| --- |" + " ---: |" * len(tasks)]
+    for x in labels:
+        r = success[x]
+        cells = [f"{round(r['per_task'][t] * r['per_task_n'][t])} of {r['per_task_n'][t]}" if t in r["per_task"]
+                 else "-" for t in tasks]
+        lines.append(f"| {x} | " + " | ".join(cells) + " |")
+    return lines + ["", "*: the task needs a grasp or a placement (an object gripped and put, or a spoon's scoop "
+                    "carried to the mouth)."]
 
 
 def _spread(entry: dict, key: str, scale: float = 1.0, digits: int = 2) -> str:

@@ -17,7 +17,8 @@ import pytest
 import yaml
 from conftest import REPO, one_line_error, run_module
 
-MODELS = ["fm_cnn", "dp_cnn", "bc_cnn", "fm_cnn_velocity", "dp_cnn_epsilon"]
+MODELS = ["fm_cnn", "dp_cnn", "bc_cnn"]  # the default run's like-for-like trio
+PAPER = ["fm_cnn_velocity", "dp_cnn_epsilon"]  # pipelines/paper
 
 
 def dvc(cwd: Path, *args: str) -> subprocess.CompletedProcess:
@@ -40,13 +41,35 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> Path:
     params["ingest"]["size"] = 32
     params["train"].update(epochs=2, threads=1)
     params["evaluate"].update(steps="1 16", best_of=2, repeats=2)
-    params["replay"].update(max_episodes=5, workers=2)  # five tasks (test_sim runs every task's demonstrator)
-    params["closed_loop"].update(execute="8 16", max_episodes=3, models=["fm_cnn", "dp_cnn", "bc_cnn"])
+    params["replay"].update(scenes=1, workers=2)  # one fresh scene per task
     (root / "params.yaml").write_text(yaml.safe_dump(params))
     subprocess.run(["git", "init", "-q"], cwd=root, check=True)
     dvc(root, "init", "-q")
     dvc(root, "repro")
     return root
+
+
+def side_pipeline(root: Path, name: str, **params: object) -> Path:
+    """pipelines/<name> (its own DVC project) run on the tiny default pipeline's data and models."""
+    where = root / "pipelines" / name
+    shutil.copytree(REPO / "pipelines" / name, where, ignore=shutil.ignore_patterns("metrics", "models", "reports"))
+    if params:
+        own = yaml.safe_load((where / "params.yaml").read_text())
+        for section, values in params.items():
+            own[section].update(values)
+        (where / "params.yaml").write_text(yaml.safe_dump(own))
+    dvc(where, "repro")
+    return where
+
+
+@pytest.fixture(scope="module")
+def closed_loop(pipeline: Path) -> Path:
+    return side_pipeline(pipeline, "closed_loop", closed_loop={"execute": "8 16", "max_episodes": 3})
+
+
+@pytest.fixture(scope="module")
+def paper(pipeline: Path) -> Path:
+    return side_pipeline(pipeline, "paper")
 
 
 def test_repro_runs_every_stage(pipeline: Path) -> None:
@@ -80,7 +103,7 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     for key in ("best_of_2_px", "px_multimodal", "commitment", "ms"):
         assert row[f"{key}_ci"][0] <= row[key] <= row[f"{key}_ci"][1], key
     assert row["best_of_2_px"] <= row["px"]
-    for dp in ("dp_cnn", "dp_cnn_epsilon"):
+    for dp in ("dp_cnn",):
         assert sorted(ev["models"][dp]["last"]) == ["ddim/1", "ddim/16", "ddpm/1", "ddpm/16", "ddpm_trailing/1",
                                                     "ddpm_trailing/16"]
     for model in MODELS:
@@ -95,14 +118,11 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert "## How the policies fail, safety first" in report and "| blind | " in report
     assert report.index("## Headline") < report.index("## Table 1 in detail")
     assert "FM-1 about as accurate as DP-16 (within 10% or better; clean-trajectory output for both)" in report
-    assert "FM-1 about as accurate as DP-16 (within 10% or better; the paper's pair: velocity vs noise" in report
     assert "## Mode commitment" in report and "| fm_cnn | 16 |" in report
     assert "| model | optimiser steps | val px best [95 %] (epoch) |" in report
-    assert "## Closed loop vs open loop" in report and "| closed loop: fm_cnn/euler-1/Ta-8 |" in report
-    assert "| closed loop: oracle-command/Ta-8 (the demonstration's own plans" in report
-    assert "- fm_cnn: closed loop " in report and "open loop. Best closed loop fm_cnn/euler-1/Ta-" in report
-    assert "exact McNemar p = " in report and "## Where the failed rollouts fail" in report
-    assert "| open loop: fm_cnn/euler-1 (first frame -> whole trajectory) |" in report
+    assert "exact McNemar p = " in report and "| verdict in success |" in report
+    assert "10 fresh scenes (1 per task, drawn by the recorder's generator with seed 0" in report
+    assert "### Scenes solved per task" in report and "| pass the water * |" in report
     assert "FM better than BC (U-Net for both" in report and "FM-1 much faster than DP-16" in report
     assert "px: pixels of the 32 px stored image" in report and "a rescaling to the paper's image size" in report
     for fig in ("loss_fm_vs_dp", "val_px_vs_epoch", "px_vs_steps", "ms_vs_steps"):
@@ -111,21 +131,25 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
 
 
 def test_the_demonstrations_replay_successfully(pipeline: Path) -> None:
-    """The recorded trajectories, resampled to 32 waypoints and executed open loop, solve every task."""
+    """On fresh scenes (the recorder's generator at indices no recording uses), the demonstrator's trajectories,
+    resampled to 32 waypoints and executed open loop, solve every task."""
     rp = json.loads((pipeline / "metrics" / "replay_details.json").read_text())
     assert json.loads((pipeline / "metrics" / "replay.json").read_text())["success"]["demo"] == rp["success"]["demo"][
         "overall"]
-    assert {"fm_cnn/euler-1", "fm_cnn/euler-16", "dp_cnn/ddpm-16", "bc_cnn", "fm_cnn_velocity/euler-1",
-            "dp_cnn_epsilon/ddpm-16"} <= set(rp["success"])
+    assert {"fm_cnn/euler-1", "fm_cnn/euler-16", "dp_cnn/ddpm-16", "bc_cnn"} <= set(rp["success"])
+    assert rp["scenes"] == {"kind": "fresh", "per_task": 1, "seed": 0}
+    split = json.loads((pipeline / "data" / "split.json").read_text())
+    assert not set(rp["per_episode"]["demo"]) & set(split["test"] + split["train"])
+    assert sorted(rp["per_episode"]["demo"])[0] == "fresh/brush_the_teeth/1000000"
     demo = rp["success"]["demo"]
-    assert demo["n"] == 5 and len(demo["per_task"]) == 5  # one per task: replay's every_task_first
+    assert demo["n"] == 10 and len(demo["per_task"]) == 10  # one fresh scene per task
     assert demo["overall"] >= 0.9, demo
     # at the task's demonstrated speed (no demonstration's own duration), the demonstrations still succeed
     assert rp["success"]["demo@fixed-speed"]["overall"] >= 0.8, rp["success"]["demo@fixed-speed"]
     assert {"blind", "blind@fixed-speed", "fm_cnn/euler-1@fixed-speed"} <= set(rp["success"])
     # every episode keeps which parts of its predicate failed and its peak force on the person
     diag = rp["diagnostics"]["fm_cnn/euler-1"]
-    assert len(diag) == 5 and all(d["peak_force_n"] >= 0 for d in diag.values())
+    assert len(diag) == 10 and all(d["peak_force_n"] >= 0 for d in diag.values())
     failed = [n for n, ok in rp["per_episode"]["fm_cnn/euler-1"].items() if not ok]
     assert all(diag[n]["failed"] for n in failed) and not any(diag[n]["failed"] for n in diag if n not in failed)
     strips = sorted((pipeline / "reports" / "failures").glob("*.png"))
@@ -141,8 +165,7 @@ def test_dvc_commands_print_clean_in_120_columns(pipeline: Path) -> None:
     assert "WARNING" not in proc.stderr + proc.stdout and "failed to load" not in proc.stderr + proc.stdout
     assert max(len(line) for line in lines) <= 120, proc.stdout
     rows = {line.split()[0] for line in lines[1:]}
-    assert {f"metrics/summary/{m}.json" for m in ("fm_cnn", "dp_cnn", "bc_cnn", "blind", "demo",
-                                                    "closed_loop_fm_cnn")} <= rows, proc.stdout
+    assert {f"metrics/summary/{m}.json" for m in ("fm_cnn", "dp_cnn", "bc_cnn", "blind", "demo")} <= rows, proc.stdout
     assert lines[0].split() == ["Path", "cm", "converged", "ms", "px", "success"]
     status = dvc(pipeline, "status")
     assert status.stdout.strip() == "Data and pipelines are up to date." and not status.stderr.strip()
@@ -185,13 +208,13 @@ def test_plots_render_the_loss_curves(pipeline: Path) -> None:
     assert any("Train and test loss" in n for n in names) and any("vs sampling steps" in n for n in names)
 
 
-def test_inspect_writes_a_readable_rerun_recording(pipeline: Path, tmp_path: Path) -> None:
+def test_inspect_writes_a_readable_rerun_recording(closed_loop: Path, pipeline: Path, tmp_path: Path) -> None:
     from rerun.chunk import RrdReader
 
-    rrd = tmp_path / "preds.rrd"
+    rrd = tmp_path / "preds.rrd"  # replay's verdicts on recorded test episodes: the closed-loop study's open loop
     run_module("inspect", "--model", pipeline / "models" / "fm_cnn", "--data", pipeline / "data" / "adl.h5",
-               "--episodes", "0", "3", "--samples", "3", "--replay", pipeline / "metrics" / "replay_details.json",
-               "-o", rrd, check=True)
+               "--episodes", "0", "1", "--samples", "3", "--replay",
+               closed_loop / "metrics" / "replay_open_details.json", "-o", rrd, check=True)
     reader = RrdReader(str(rrd))
     summary = reader.store().summary()
     for entity in ("/world/replay", "/world/camera", "/world/camera/image", "/world/camera/image/rgb",
@@ -219,8 +242,8 @@ def test_inspect_writes_a_readable_rerun_recording(pipeline: Path, tmp_path: Pat
     assert len(texts) == 2 and all("fm_cnn/euler-1: " in str(t) and "peak force" in str(t) for t in texts), texts
 
 
-def test_closed_loop_replay_replans_from_new_images(pipeline: Path, tmp_path: Path) -> None:
-    details = json.loads((pipeline / "metrics" / "replay_closed_loop_details.json").read_text())
+def test_closed_loop_replay_replans_from_new_images(closed_loop: Path, pipeline: Path) -> None:
+    details = json.loads((closed_loop / "metrics" / "replay_closed_loop_details.json").read_text())
     labels = {f"{m}/Ta-{ta}" for m in ("fm_cnn/euler-1", "dp_cnn/ddpm-16", "bc_cnn", "oracle-command")
               for ta in (8, 16)}
     assert set(details["success"]) == labels
@@ -229,10 +252,28 @@ def test_closed_loop_replay_replans_from_new_images(pipeline: Path, tmp_path: Pa
         assert details["success"][f"oracle-command/Ta-{ta}"]["overall"] >= 0.9, details["success"]
     assert details["training"]["fm_cnn"]["optimizer_steps"] == json.loads(
         (pipeline / "models" / "fm_cnn" / "metrics.json").read_text())["optimizer_steps"]  # the same budget
-    ck = __import__("torch").load(pipeline / "models" / "closed_loop" / "fm_cnn" / "best.pt", weights_only=True)
+    ck = __import__("torch").load(closed_loop / "models" / "fm_cnn" / "best.pt", weights_only=True)
     cfg = ck["config"]
     assert cfg["n_obs"] == 2 and cfg["horizon"] == 16 and cfg["rate_hz"] == 10 and cfg["state_dim"] == 8
     assert cfg["target"] == "command"  # the commanded tcp, with the measured tcp and gripper as state
+    report = (closed_loop / "reports" / "report.md").read_text()
+    assert "## Closed loop vs open loop" in report and "| closed loop: fm_cnn/euler-1/Ta-8 |" in report
+    assert "| closed loop: oracle-command/Ta-8 (the demonstration's own plans" in report
+    assert "- fm_cnn: closed loop " in report and "open loop. Best closed loop fm_cnn/euler-1/Ta-" in report
+    assert "exact McNemar p = " in report and "## Where the failed rollouts fail" in report
+    assert "| open loop: fm_cnn/euler-1 (first frame -> whole trajectory) |" in report
+
+
+def test_the_papers_pair_runs_beside_the_trio(paper: Path) -> None:
+    ev = json.loads((paper / "metrics" / "eval_details.json").read_text())
+    assert set(PAPER + MODELS) <= set(ev["models"])
+    assert sorted(ev["models"]["dp_cnn_epsilon"]["last"]) == ["ddim/1", "ddim/16", "ddpm/1", "ddpm/16",
+                                                              "ddpm_trailing/1", "ddpm_trailing/16"]
+    rp = json.loads((paper / "metrics" / "replay_details.json").read_text())
+    root = json.loads((paper.parent.parent / "metrics" / "replay_details.json").read_text())
+    assert set(rp["per_episode"]["fm_cnn_velocity/euler-1"]) == set(root["per_episode"]["fm_cnn/euler-1"])
+    report = (paper / "reports" / "report.md").read_text()
+    assert "FM-1 about as accurate as DP-16 (within 10% or better; the paper's pair: velocity vs noise" in report
 
 
 def test_closed_loop_replay_refuses_a_first_frame_model(pipeline: Path, tmp_path: Path) -> None:

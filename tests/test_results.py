@@ -12,7 +12,7 @@ def test_readme_tables_agree_with_the_committed_results() -> None:
     proc = run_module("results", "--check")
     assert proc.returncode == 0, proc.stderr
     readme = (REPO / "README.md").read_text()
-    for name in ("default", "closed-loop", "blind", "safety", "seeds"):
+    for name in ("default", "blind", "per-task", "safety", "seeds"):
         assert f"<!-- results:{name} -->" in readme, name
 
 

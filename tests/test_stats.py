@@ -183,3 +183,23 @@ def test_where_closed_loop_rollouts_fail_carries_intervals() -> None:
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[1] == "6 of 8" and cells[6] == "6"  # six failed, each missed the placement
     assert cells[7].startswith("12.5 [") and cells[8] == "0.50 [0.50, 0.50]" and cells[9].endswith("(0.2 [0.2, 0.2])")
+
+
+def test_mcnemar_verdict_and_the_scenes_that_would_resolve_it() -> None:
+    from adlpipe.stats import paired_success, scenes_to_resolve
+
+    better = paired_success([1] * 12 + [0] * 2 + [1] * 10 + [0] * 16, [0] * 12 + [1] * 2 + [1] * 10 + [0] * 16)
+    assert (better.only_first, better.only_second, better.n) == (12, 2, 40) and better.p_value < 0.05
+    assert better.verdict() == "better"
+    open_ = paired_success([1] * 4 + [0] * 36, [0] * 3 + [1] + [0] * 36)
+    assert open_.verdict().startswith("not resolved at n = 40 (about ")
+    need = scenes_to_resolve(4, 1, 40)
+    # at the measured share (5 of 40 discordant, 4 : 1) that many scenes give p < 0.05, 10 % fewer do not
+    from scipy.stats import binomtest
+
+    k = round(5 / 40 * need)
+    assert binomtest(round(0.8 * k), k).pvalue < 0.05
+    k0 = round(5 / 40 * int(need * 0.9))
+    assert binomtest(round(0.8 * k0), k0).pvalue >= 0.05
+    assert scenes_to_resolve(3, 3, 40) is None and paired_success([1, 0], [1, 0]).verdict().endswith(
+        "(no difference measured)")
