@@ -313,6 +313,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"note: {shards.shards_dir(args.output) / name}: a share still being written (or written on "
                   "another machine); left alone: gather again when it has finished, or remove it if it was "
                   "stopped", file=sys.stderr)
+        if not args.output.exists():
+            raise AdlError(f"{args.output}: nothing to gather: no finished share in {shards.shards_dir(args.output)}"
+                           + (f" ({len(g['unfinished'])} still being written)" if g["unfinished"] else "")
+                           + "; run ingest --shard first")
         print(f"{args.output}: {g['new']} episode(s) linked from {g['shares']} share(s), {g['episodes']} in all")
         return 0
     tm = TopicMap.load(args.config)

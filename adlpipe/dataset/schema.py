@@ -152,6 +152,18 @@ DAMAGED_STRUCTURE = (KeyError, RuntimeError, ValueError, TypeError, SystemError)
 DAMAGED = (*DAMAGED_STRUCTURE, OSError)
 
 
+def raise_if_interrupted(exc: BaseException) -> None:
+    """A Ctrl-C that lands inside h5py's compiled code comes out as a SystemError ("returned a result with an
+    exception set") whose cause is the KeyboardInterrupt: an interrupt, not damage. Raise it as the interrupt."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            raise KeyboardInterrupt from None
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+
+
 # Episode attributes readers take as one value: name -> numpy dtype kinds (text; bool, integer, float).
 SCALAR_ATTRS = {"task": "OSU", "has_depth": "biuf", "has_affordance": "biuf", "duration_s": "biuf",
                 "stamp0_ns": "biu", "segment": "biu"}
@@ -203,6 +215,7 @@ def open_dataset(path: Path | str, names: list[str] | None = None) -> Iterator[h
             files = {n: episode_path(path, f, n) for n in present}  # every link resolved and confined (no file is
             # opened for this) before HDF5 follows any of them
         except DAMAGED as exc:
+            raise_if_interrupted(exc)
             raise AdlError(f"{path}: the dataset's index is damaged ({one_line(exc)}); ingest the bags again into "
                            "a new dataset") from None
         for n in wanted:
@@ -216,6 +229,7 @@ def check_episode_file(path: Path, f: h5py.File, name: str, file: Path) -> None:
     try:
         g = f[EPISODES][name]
     except DAMAGED as exc:  # truncated, emptied, not HDF5, unreadable: HDF5 cannot open it
+        raise_if_interrupted(exc)
         raise AdlError(f"{path}: episode {name}: its file {file} cannot be read ({one_line(exc)}); re-ingest its bag "
                        "into a new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
     if Path(g.file.filename).resolve() != file:
@@ -224,6 +238,7 @@ def check_episode_file(path: Path, f: h5py.File, name: str, file: Path) -> None:
         check_self_contained(g.file, f"{path}: episode {name}")
         check_episode(g, f"{path}:{name}")
     except DAMAGED as exc:
+        raise_if_interrupted(exc)
         raise AdlError(f"{path}: episode {name}: its file {file} is damaged ({one_line(exc)}); re-ingest its bag "
                        "into a new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
 
@@ -458,6 +473,7 @@ def read_catalog(f: h5py.File) -> list[dict[str, str]]:
                 for k in CATALOG_FIELDS}
         return [dict(zip(CATALOG_FIELDS, row, strict=True)) for row in zip(*cols.values(), strict=True)]
     except DAMAGED as exc:  # a column missing, of another length, or a damaged table
+        raise_if_interrupted(exc)
         raise AdlError(f"{f.filename}: the dataset's catalog cannot be read ({one_line(exc)}); ingest the bags again "
                        "into a new dataset") from None
 

@@ -65,6 +65,7 @@ def write_dataset_recording(out: Path, data: Path, names: list[str]) -> int:
         return _write_dataset_recording(out, data, names)
     except schema.DAMAGED_STRUCTURE as exc:  # damage below what opening the dataset checks (a table deep in a
         # file); OS errors (a full disk) pass as they are
+        schema.raise_if_interrupted(exc)
         raise AdlError(f"{data}: a damaged episode or index ({one_line(exc)}); re-ingest its bags into a new "
                        "dataset") from None
 
