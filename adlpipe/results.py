@@ -2,6 +2,7 @@
 
     python -m adlpipe.results --save-from metrics        # after `dvc repro`: keep the run's details in results/
     python -m adlpipe.results --save-seeds pipelines/seeds/metrics/seeds.json
+    python -m adlpipe.results --save-study pipelines/study     # after `dvc repro` there
     python -m adlpipe.results                            # rewrite README's tables from results/
     python -m adlpipe.results --check                    # exit 1 when README and results/ disagree (a test runs it)
 
@@ -39,8 +40,18 @@ DEFAULT_ROWS = (
     ("FM-CNN, velocity output, 16 Euler steps", "fm_cnn_velocity", "euler/16", "fm_cnn_velocity/euler-16"),
     ("DP-CNN, epsilon output (the paper's), 16 DDPM steps", "dp_cnn_epsilon", "ddpm/16", "dp_cnn_epsilon/ddpm-16"),
     ("DP-CNN, epsilon output, its lowest-px row", "dp_cnn_epsilon", "*", None),
+    ("FM-Transformer, x1 output, 1 Euler step", "fm_transformer", "euler/1", "fm_transformer/euler-1"),
+    ("FM-Transformer, x1 output, 16 Euler steps", "fm_transformer", "euler/16", "fm_transformer/euler-16"),
+    ("BC-Transformer (MSE, same transformer)", "bc_transformer", "direct/1", "bc_transformer"),
     ("blind baseline: the task's mean training trajectory", "blind", "task_mean/1", "blind"),
 )
+# What the study keeps (pipelines/study -> results/study): its own path -> the name kept
+STUDY_FILES = {"metrics/seed0/eval_details.json": "eval_details.json",
+               "metrics/seed0/replay_details.json": "replay_details.json", "metrics/seeds.json": "seeds.json",
+               "metrics/replay_open_details.json": "replay_open_details.json",
+               "metrics/replay_closed_loop_details.json": "replay_closed_loop_details.json",
+               "reports/report.md": "report.md", "reports/seeds.md": "seeds.md",
+               "reports/closed_loop/report.md": "closed_loop_report.md"}
 OPEN_LOOP_OF = {"fm_cnn": "fm_cnn/euler-1", "dp_cnn": "dp_cnn/ddpm-16", "bc_cnn": "bc_cnn"}
 
 
@@ -116,7 +127,42 @@ def tables(results: Path) -> dict[str, str]:
     seeds = results / "seeds" / "seeds.json"
     if seeds.exists():
         out["seeds"] = seeds_lines(_load(seeds))
+    study = results / "study"
+    if (study / "eval_details.json").exists():
+        out.update(study_tables(study))
     return {k: "\n".join(v) for k, v in out.items() if v}
+
+
+def study_tables(study: Path) -> dict[str, list[str]]:
+    """The study's tables (pipelines/study, kept in results/study): every model, blind, per task, the paper's
+    claims, the seeds and the closed loop."""
+    from .report import claims, grasp_tasks
+
+    ev, rp = _load(study / "eval_details.json"), _load(study / "replay_details.json")
+    out = {"study": default_table(ev, rp), "study-blind": blind_lines(ev, rp),
+           "study-per-task": per_task_lines(ev, rp, grasp_tasks()), "study-claims": claims(ev, rp)}
+    if (study / "seeds.json").exists():
+        out["study-seeds"] = seeds_lines(_load(study / "seeds.json"))
+    if (study / "replay_closed_loop_details.json").exists() and (study / "replay_open_details.json").exists():
+        out["study-closed-loop"] = closed_loop_table(_load(study / "replay_open_details.json"),
+                                                     _load(study / "replay_closed_loop_details.json"))
+    return out
+
+
+def save_study(pipeline: Path, results: Path) -> None:
+    """Keep the study's details, reports and training logs in RESULTS/study (all readable before any is copied)."""
+    missing = [k for k in STUDY_FILES if not (pipeline / k).is_file()]
+    if missing:
+        raise AdlError(f"{pipeline}: the study has not finished ({missing[0]} missing); run dvc repro there first")
+    for src in STUDY_FILES:
+        if src.endswith(".json"):
+            _load(pipeline / src)
+    for src, name in STUDY_FILES.items():
+        with atomic_path(results / "study" / name) as tmp:
+            shutil.copyfile(pipeline / src, tmp)
+    for log in sorted((pipeline / "metrics" / "train").glob("*/*.csv")):
+        with atomic_path(results / "study" / "train" / log.parent.name / log.name) as tmp:
+            shutil.copyfile(log, tmp)
 
 
 def _block(name: str) -> re.Pattern:
@@ -146,7 +192,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="first copy a run's details (" + ", ".join(RUN_FILES) + ") into RESULTS/default")
     p.add_argument("--save-seeds", type=Path, metavar="SEEDS_JSON", help="first copy the seeds summary into "
                    "RESULTS/seeds/seeds.json")
+    p.add_argument("--save-study", type=Path, metavar="PIPELINE", help="first keep the study's details, reports and "
+                   "training logs (pipelines/study) in RESULTS/study")
     args = p.parse_args(argv)
+    if args.save_study is not None:
+        save_study(args.save_study, args.results)
     if args.save_from is not None:
         present = [n for n in RUN_FILES if n in RUN_FILES[:2] or (args.save_from / n).exists()]
         for name in present:
