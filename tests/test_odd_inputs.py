@@ -75,3 +75,29 @@ def test_an_interrupt_inside_hdf5_reads_is_an_interrupt_not_damage(tmp_path: Pat
     finally:
         signal.signal(signal.SIGALRM, old)
     assert outcomes == ["interrupt"] * 50, [o for o in outcomes if o != "interrupt"][:3]
+
+
+def test_list_counts_channels_no_decoder_knows_and_errors_stay_short(tmp_path: Path) -> None:
+    """An MCAP written without ROS schemas (protobuf, by mcap's own writer) with 40 channels: --list lists every
+    topic with its counts and says it was not decoded; ingest's refusal names a few topics and how many more."""
+    from mcap.writer import Writer
+
+    bag = tmp_path / "foxglove.mcap"
+    with open(bag, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema(name="foxglove.RawImage", encoding="protobuf", data=b"\x0a\x00")
+        channels = [w.register_channel(topic=f"/cam{i:02d}/image", message_encoding="protobuf", schema_id=sid)
+                    for i in range(40)]
+        for k in range(3):
+            for c in channels:
+                w.add_message(channel_id=c, log_time=k * 10**8, publish_time=k * 10**8, data=b"\x08\x01")
+        w.finish()
+    proc = run_module("ingest", "--list", bag)
+    assert proc.returncode == 0, proc.stderr
+    rows = [ln for ln in proc.stdout.splitlines() if "/image" in ln]
+    assert len(rows) == 40 and all("declared      3 read      3" in r for r in rows)
+    assert all("not decoded: no decoder for encoding 'protobuf'" in r for r in rows)
+    line = one_line_error(run_module("ingest", bag, "-o", tmp_path / "adl.h5"))
+    assert len(line) < 700 and "/cam00/image (foxglove.RawImage)" in line and "and 32 more" in line
+    assert not (tmp_path / "adl.h5").exists()

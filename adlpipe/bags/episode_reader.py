@@ -25,6 +25,9 @@ IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}
 TF_TYPES = {"tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"}  # tf/tfMessage: old ROS1 bags, same layout
 
 
+MAX_NAMED = 8  # topics an error line names before it says how many more there are
+
+
 class FrameSink(Protocol):
     """Takes every image as it is read (adlpipe.dataset.frames.FrameWriter); stamps are header stamps, s."""
 
@@ -170,7 +173,10 @@ def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None
     topics = src.topics()
     missing = [t for t in tm.required_topics() if t not in topics]
     if missing:
-        have = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(topics.items())) or "no topics"
+        named = [f"{t} ({i.msgtype})" for t, i in sorted(topics.items())[:MAX_NAMED]]
+        more = len(topics) - len(named)
+        have = (", ".join(named) + (f" and {more} more (ingest --list names them all)" if more else "")
+                if topics else "no topics")
         raise AdlError(f"{bag}: missing required topic(s) {', '.join(missing)}; the bag has: {have}")
     check_types(bag, topics, tm)
     wanted = [t for t in tm.required_topics() + tm.optional_topics() if t in topics]

@@ -8,6 +8,7 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..errors import AdlError
 from .episode_reader import stamp_s
 from .reader import BagSource
 from .splits import split_note
@@ -26,6 +27,7 @@ class TopicStats:
     offsets: list[float] = field(default_factory=list, repr=False)  # log time - header.stamp, seconds
     kind: str = ""  # color / depth / other, for images
     frame_id: str = ""
+    undecoded: str = ""  # why its messages were counted but not decoded (no decoder for their encoding)
 
     @property
     def rate_hz(self) -> float | None:
@@ -65,7 +67,15 @@ def survey(bag: Path) -> Survey:
         s = stats[topic]
         s.read += 1
         s.log_times.append(log_ns * 1e-9)
-        msg = decode()
+        if s.undecoded:
+            continue
+        try:
+            msg = decode()
+        except AdlError as exc:
+            if "no decoder for message type" not in str(exc):
+                raise  # a message that does not decode is a bad bag; a type no decoder knows is listed as such
+            s.undecoded = "no decoder" + (f" for {str(exc).rsplit('(', 1)[1].rstrip(')')}" if "(" in str(exc) else "")
+            continue
         header = getattr(msg, "header", None)
         if header is not None and hasattr(header, "stamp"):
             s.offsets.append(log_ns * 1e-9 - stamp_s(msg))
@@ -108,8 +118,9 @@ def list_lines(s: Survey) -> list[str]:
         rate = f"{t.rate_hz:.1f}" if t.rate_hz else "-"
         gap = f"{t.max_gap_s:.3f}" if t.max_gap_s is not None else "-"
         off = f"{t.stamp_offset_s:+.4f}" if t.stamp_offset_s is not None else "-"
+        note = f"   (counted, not decoded: {t.undecoded})" if t.undecoded else ""
         out.append(f"  {topic:40s} {t.msgtype:34s} declared {t.declared!s:>6} read {t.read:>6} {rate:>8} {gap:>9} "
-                   f"{off:>14}{flag}")
+                   f"{off:>14}{flag}{note}")
     return out
 
 
