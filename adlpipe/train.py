@@ -31,6 +31,7 @@ alone conditions the model (the seed's Franka Kitchen setting).
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import copy
 import csv
@@ -223,8 +224,7 @@ def training_batches(train_ds: Dataset, cfg: ModelConfig, batch_size: int, seed:
 
 def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
           lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = WARMUP_STEPS, grad_clip: float = 1.0,
-          seed: int = 0,
-          log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
+          seed: int = 0, log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
           val_fraction: float = 0.1, val_every: int = 5, augment: bool = True, workers: int = 0,
           device: torch.device | None = None, precision: str = "fp32", ranks: Ranks | None = None,
           windows_per_epoch: str = "episodes", save_every: int = 0, open_files: int = OPEN_FILES) -> dict:
@@ -239,23 +239,12 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         raise AdlError(f"{split_path}: the train split is empty")
     if batch_size % ranks.world:
         raise AdlError(f"--batch-size {batch_size}: the global batch must split evenly over {ranks.world} processes")
-    with schema.open_dataset(data, split["train"] + split["test"]) as f:
-        horizon, stored_size = int(f.attrs["n_waypoints"]), int(f.attrs["image_size"])
-        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
-        keys = recording_keys(f, split["train"])
-        check_cameras(f, split["train"] + split["test"], cfg.cameras, str(data))
-    if horizon != cfg.horizon and not cfg.closed_loop:
-        raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
-    train_names, val_names = split_validation(tasks, val_fraction, seed, keys)
+    train_names, val_names, stored_size = training_episodes(data, split, cfg, val_fraction, seed)
     aug = Augment(stored_size, crop=cfg.crop) if augment else None  # windows without images skip it
     stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed,
                                                 windows_per_epoch, open_files)
     norm = Normalizer(stats)
-    val_obs, val_px_target = None, None
-    if val_ds is not None and ranks.main:
-        items = [val_ds[i] for i in range(len(val_ds))]
-        val_obs = to_device(collate_obs([o for o, _ in items]), device)
-        val_px_target = norm.unnormalize(torch.stack([a for _, a in items]))[..., :val_dims(cfg)].to(device)
+    val_obs, val_px_target = validation_set(val_ds, norm, cfg, device) if ranks.main else (None, None)
     loader = training_batches(train_ds, cfg, batch_size, seed, workers, device, ranks)
     test_loader = DataLoader(TrainingSamples(test_ds, seed), batch_size=batch_size,
                              sampler=EpochSampler(len(test_ds), shuffle=False), num_workers=0)
@@ -273,19 +262,8 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     opt = torch.optim.AdamW(policy.parameters(), lr=lr, betas=ADAMW_BETAS, weight_decay=weight_decay, fused=True)
     sched = cosine_with_warmup(opt, warmup_steps, epochs * steps_per_epoch)
     ema = EMA(policy)
-    history: list[dict] = []
-    start_epoch = 0
     last = out / "last.pt"
-    if last.exists():
-        ck = load_checkpoint(last)
-        if ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams:
-            raise AdlError(f"{last}: checkpoint is from other settings; remove {out} (or use --restart) to retrain")
-        policy.load_state_dict(ck["model"])
-        ema.model.load_state_dict(ck["ema"])
-        ema.step = int(ck["ema_step"])
-        opt.load_state_dict(ck["optimizer"])
-        sched.load_state_dict(ck["scheduler"])
-        history, start_epoch = list(ck["history"]), int(ck["epoch"])
+    history, start_epoch = resume(last, cfg, hparams, policy, ema, opt, sched)
     best_px = min((r["val_px"] for r in history if r.get("val_px") is not None), default=math.inf)
 
     def inference_checkpoint(epoch: int) -> dict:
@@ -298,34 +276,15 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     for epoch in bar:
         t0 = time.time()
         loader.set_epoch(epoch)  # the epoch's permutation, windows, augmentation and noise: resumable exactly
-        model.train()
-        total, n = 0.0, 0
-        for batch in loader:
-            obs, act, eps, u = to_device(batch, device)
-            with autocast(device, precision):
-                loss = model(obs, act, Noise(eps, u))
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), grad_clip or math.inf)
-            if not torch.isfinite(grad_norm):  # the same on every process (synchronised gradients): all stop here,
-                # before the weights or last.pt take the NaN
-                raise AdlError(f"{cfg.model}: training diverged (loss {float(loss.detach())}, gradient norm "
-                               f"{float(grad_norm)} in epoch {epoch + 1}); the last good checkpoint is kept in "
-                               f"{out / 'last.pt'}; try a lower --lr")
-            opt.step()
-            sched.step()
-            ema.update(policy)
-            total += loss.item() * len(act)
-            n += len(act)
+        total, n = optimise_epoch(model, policy, loader, opt, sched, ema, grad_clip, device, precision,
+                                  f"{cfg.model}: training diverged", f"epoch {epoch + 1}", out / "last.pt")
         total, n = all_sum([total, n], device, ranks)
         if ranks.main:
             val_px, val_ci, test_loss = None, None, None
             if (epoch + 1) % val_every == 0 or epoch + 1 == epochs:  # with validation: the test loss is for the
                 # curves, and every epoch it cost a tenth of the training time
-                test_loss = evaluate_loss(ema.model, test_loader, device, precision)
-                if val_obs is not None:
-                    per_episode = validation_px(ema.model, val_obs, val_px_target, norm, seed, precision)
-                    val_px, val_ci = float(np.mean(per_episode)), list(mean_interval(per_episode))
+                test_loss, val_px, val_ci = measure(ema.model, test_loader, val_obs, val_px_target, norm, seed,
+                                                    device, precision)
             row = {"epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "train_loss": total / n,
                    "test_loss": test_loss, "val_px": val_px, "val_px_ci": val_ci, "lr": sched.get_last_lr()[0],
                    "seconds": time.time() - t0}
@@ -337,9 +296,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             if save_every and (epoch + 1) % save_every == 0:
                 save_atomic(inference_checkpoint(epoch + 1),
                             out / "checkpoints" / f"step_{(epoch + 1) * steps_per_epoch:07d}.pt")
-            save_atomic({"model": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
-                         "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1,
-                         "history": history, "config": cfg.to_dict(), "hparams": hparams, "stats": stats}, last)
+            save_atomic(resumable(policy, ema, opt, sched, epoch + 1, history, cfg, hparams, stats), last)
         barrier(ranks)  # the others wait while rank 0 validates and writes
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
             return {"interrupted_at": epoch + 1}
@@ -348,15 +305,116 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     save_atomic(inference_checkpoint(epochs), out / "model.pt")
     if not (out / "best.pt").exists():  # no validation part: the last weights are the only choice
         save_atomic(inference_checkpoint(epochs), out / "best.pt")
+    final = final_metrics(history, cfg, epochs, steps_per_epoch, len(train_names), len(val_names), ranks, device,
+                          precision)
+    write_json_atomic(out / "metrics.json", final)
+    write_log(log_csv, history)
+    return final
+
+
+def write_log(log_csv: Path | None, history: list[dict]) -> None:
+    """The per-epoch CSV that dvc plots reads (plain columns only)."""
     if log_csv is not None:
         with atomic_path(log_csv) as tmp, open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, LOG_FIELDS, extrasaction="ignore")  # the log keeps plain columns
+            w = csv.DictWriter(f, LOG_FIELDS, extrasaction="ignore")
             w.writeheader()
             w.writerows(history)
+
+
+
+def training_episodes(data: Path, split: dict, cfg: ModelConfig, val_fraction: float,
+                      seed: int) -> tuple[list[str], list[str], int]:
+    """(train, validation) episodes of the split's train part, and the dataset's stored image size; the data must
+    hold the model's cameras and (first-frame models) its horizon."""
+    with schema.open_dataset(data, split["train"] + split["test"]) as f:
+        horizon, stored_size = int(f.attrs["n_waypoints"]), int(f.attrs["image_size"])
+        tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
+        keys = recording_keys(f, split["train"])
+        check_cameras(f, split["train"] + split["test"], cfg.cameras, str(data))
+    if horizon != cfg.horizon and not cfg.closed_loop:
+        raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
+    return (*split_validation(tasks, val_fraction, seed, keys), stored_size)
+
+
+def validation_set(val_ds: Dataset | None, norm: Normalizer, cfg: ModelConfig,
+                   device: torch.device) -> tuple[Observation | None, torch.Tensor | None]:
+    """The validation episodes' observations and their targets in the target's units, on the device, once."""
+    if val_ds is None:
+        return None, None
+    items = [val_ds[i] for i in range(len(val_ds))]
+    obs = to_device(collate_obs([o for o, _ in items]), device)
+    return obs, norm.unnormalize(torch.stack([a for _, a in items]))[..., :val_dims(cfg)].to(device)
+
+
+@torch.no_grad()
+def measure(model: Policy, test_loader: DataLoader, val_obs: Observation | None, val_target: torch.Tensor | None,
+            norm: Normalizer, seed: int, device: torch.device,
+            precision: str) -> tuple[float, float | None, list[float] | None]:
+    """(test loss, val px, its interval) of the EMA model; no val px without a validation part."""
+    test_loss = evaluate_loss(model, test_loader, device, precision)
+    if val_obs is None:
+        return test_loss, None, None
+    per_episode = validation_px(model, val_obs, val_target, norm, seed, precision)
+    return test_loss, float(np.mean(per_episode)), list(mean_interval(per_episode))
+
+
+def resumable(policy: Policy, ema: EMA, opt: torch.optim.Optimizer, sched: object, epoch: int, history: list[dict],
+              cfg: ModelConfig, hparams: dict, stats: dict) -> dict:
+    """last.pt: everything a killed run needs to go on exactly where it stopped."""
+    return {"model": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
+            "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch, "history": history,
+            "config": cfg.to_dict(), "hparams": hparams, "stats": stats}
+
+
+def optimise_epoch(model: torch.nn.Module, policy: Policy, loader: object, opt: torch.optim.Optimizer, sched: object,
+                   ema: EMA, grad_clip: float, device: torch.device, precision: str, diverged: str, when: str,
+                   last: Path) -> tuple[float, int]:
+    """One epoch of optimiser steps: (sum of the batch losses x batch sizes, samples). A non-finite gradient
+    stops training before the weights or last.pt take it (the same on every process: gradients are synchronised)."""
+    model.train()
+    total, n = 0.0, 0
+    for batch in loader:
+        obs, act, eps, u = to_device(batch, device)
+        with autocast(device, precision):
+            loss = model(obs, act, Noise(eps, u))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), grad_clip or math.inf)
+        if not torch.isfinite(grad_norm):
+            raise AdlError(f"{diverged} (loss {float(loss.detach())}, gradient norm {float(grad_norm)} in {when}); "
+                           f"the last good checkpoint is kept in {last}; try a lower --lr")
+        opt.step()
+        sched.step()
+        ema.update(policy)
+        total += loss.item() * len(act)
+        n += len(act)
+    return total, n
+
+
+def resume(last: Path, cfg: ModelConfig, hparams: dict, policy: Policy, ema: EMA, opt: torch.optim.Optimizer,
+           sched: object) -> tuple[list[dict], int]:
+    """(history, epochs done) from the checkpoint a killed run left, its state loaded into the model, EMA,
+    optimiser and schedule; ([], 0) without one. A checkpoint of other settings is one line."""
+    if not last.exists():
+        return [], 0
+    ck = load_checkpoint(last)
+    if ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams:
+        raise AdlError(f"{last}: checkpoint is from other settings; remove {last.parent} (or use --restart) to retrain")
+    policy.load_state_dict(ck["model"])
+    ema.model.load_state_dict(ck["ema"])
+    ema.step = int(ck["ema_step"])
+    opt.load_state_dict(ck["optimizer"])
+    sched.load_state_dict(ck["scheduler"])
+    return list(ck["history"]), int(ck["epoch"])
+
+
+def final_metrics(history: list[dict], cfg: ModelConfig, epochs: int, steps_per_epoch: int, n_train: int, n_val: int,
+                  ranks: Ranks, device: torch.device, precision: str) -> dict:
+    """metrics.json: the run's losses, its best and last val px with their intervals, and whether it converged."""
     vals = [r for r in history if r.get("val_px") is not None]
     best = min(vals, key=lambda r: r["val_px"]) if vals else None
     final = {"model": cfg.model, "epochs": epochs, "optimizer_steps": epochs * steps_per_epoch,
-             "train_episodes": len(train_names), "val_episodes": len(val_names),
+             "train_episodes": n_train, "val_episodes": n_val,
              "train_loss": history[-1]["train_loss"], "test_loss": history[-1]["test_loss"],
              "val_px_last": vals[-1]["val_px"] if vals else None, "val_px_best": best["val_px"] if best else None,
              "val_px_last_ci": vals[-1].get("val_px_ci") if vals else None,
@@ -365,11 +423,10 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
              "val_history": [[r["epoch"], r["val_px"]] for r in vals], "processes": ranks.world,
              "device": device.type, "precision": precision,
              "seconds": sum(r["seconds"] for r in history)}
-    write_json_atomic(out / "metrics.json", final)
     return final
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = Parser("python -m adlpipe.train", __doc__)
     p.add_argument("--model", required=True, choices=sorted(MODELS))
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
@@ -439,15 +496,14 @@ def main(argv: list[str] | None = None) -> int:
                    "with their state stream as the state input: Push-T, joint-space policies)")
     add_device_args(p)
     p.add_force()
-    args = p.parse_args(argv)
-    device = resolve_device(args.device)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    return p.parse_args(argv)
+
+
+def model_config(args: argparse.Namespace) -> ModelConfig:
+    """The model's configuration from the preset, the options and the data (its horizon, its streams' sizes)."""
     overrides = {"use_depth": args.depth, "pool": args.pool, "crop": args.crop, "per_frame": args.per_frame}
     if args.image_size:
         overrides["image_size"] = args.image_size
-    out = args.out or Path("models") / args.model
-    refuse_pipeline_outputs([out, args.log], args.force)
     with schema.open_dataset(args.data, names=[]) as f:  # train() checks the split's episodes
         horizon = int(f.attrs["n_waypoints"])
     if args.closed_loop:
@@ -474,6 +530,17 @@ def main(argv: list[str] | None = None) -> int:
     cfg = preset(args.config, args.model, **overrides)
     if cfg.crop and cfg.crop >= cfg.image_size:
         raise AdlError(f"--crop {cfg.crop}: not smaller than the {cfg.image_size} px input (--image-size)")
+    return cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    device = resolve_device(args.device)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    out = args.out or Path("models") / args.model
+    refuse_pipeline_outputs([out, args.log], args.force)
+    cfg = model_config(args)
     split = args.split or args.data.with_name("split.json")
     lr = args.lr if args.lr is not None else PRESET_LR[args.config]
     with process_group(device) as ranks:  # under torchrun: one process per GPU (or CPU share), rank 0 writes
