@@ -8,11 +8,11 @@ export DVC_NO_ANALYTICS = 1
 
 .PHONY: install test demo lint bench clean
 
-$(BIN)/.installed: pyproject.toml
+$(BIN)/.installed: pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	# torch first, pinned: the CPU build on disk, never a multi-GB CUDA download
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e ".[test]"
+	$(BIN)/pip install -q -c constraints.txt -e ".[test]"
 	# Push-T's environment without its opencv-python requirement (adlpipe has opencv-python-headless)
 	$(BIN)/pip install -q --no-deps gym-pusht==0.1.8
 	touch $@
