@@ -36,14 +36,14 @@ from .dataset.loader import Normalizer, TrajectoryDataset, check_cameras
 from .dataset.splits import load_split
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
-from .metrics import commitment, waypoint_errors
+from .evaluation.metrics import commitment, waypoint_errors
+from .evaluation.tables import error_cell, share_cell
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import latency_samples_ms, predict
 from .policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
 from .runtime import Placement, add_device_args
 from .stats import mean_interval, median_interval, ratio_interval
-from .tables import error_cell, share_cell
 
 STEPS = [1, 2, 4, 8, 16]
 DEFAULTS = {name: f"{DEFAULT_METHOD[kind]}/{DEFAULT_STEPS[kind]}" for name, (kind, _net) in MODELS.items()}

@@ -39,7 +39,7 @@ from .dataset.viewer import (
     write_dataset_recording,
 )
 from .errors import AdlError, read_json_object, run_cli
-from .outcomes import outcome_text
+from .evaluation.outcomes import outcome_text
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import predict
 from .runtime import Placement, add_device_args

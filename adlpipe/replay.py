@@ -22,8 +22,8 @@ deployed policy knows; --speed-profile fixed runs it instead over its own path l
 demonstrated speed (training split), a timing a deployed policy can have; both together are two rows per policy.
 
 Every replayed episode keeps which parts of the predicate failed and its peak force on the manikin; the table
-breaks failures down by part, safety first (adlpipe.outcomes), and --failures writes a PNG strip per policy of a
-few failed episodes.
+breaks failures down by part, safety first (adlpipe.evaluation.outcomes), and --failures writes a PNG strip per
+policy of a few failed episodes.
 
 Closed loop (--closed-loop TA [TA ...], models trained with train --closed-loop): the camera renders at the
 recorded rate; from its last To frames and the end effector's position at each, the policy predicts the next Tp
@@ -50,6 +50,7 @@ from .dataset import schema
 from .dataset.splits import load_split
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
+from .evaluation.outcomes import breakdown_lines, failure_strip, pick_failures
 from .evaluation.replay import (
     camera_rate,
     closed_loop_one,
@@ -62,13 +63,12 @@ from .evaluation.replay import (
     training_summary,
 )
 from .evaluation.scenes import ReplayScene, fresh_scene, from_episode
-from .outcomes import breakdown_lines, failure_strip, pick_failures
+from .evaluation.tables import FIXED
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import label_of, predict_episodes, predict_scenes, steps_for
 from .runtime import Placement, add_device_args
 from .stats import rate_cell, success_interval
-from .tables import FIXED
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

@@ -7,7 +7,8 @@ claimed way, contradicted when it excludes it the other way, otherwise not resol
 episodes would resolve it at the observed effect); a model that did not converge makes it no finding at all.
 Success rates are compared by McNemar's exact test on the same scenes. Every model is also measured against the
 blind baseline (its task's mean training trajectory: what knowing the task alone buys), and its failures are
-broken down by the part of the task's predicate that failed, the force on the person first (adlpipe.outcomes).
+broken down by the part of the task's predicate that failed, the force on the person first
+(adlpipe.evaluation.outcomes).
 
 --summary writes one small JSON per policy (px, cm, ms, open-loop success, converged) into a folder: the rows
 `dvc metrics show` prints, one line per policy.
@@ -28,10 +29,19 @@ from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import Parser
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, read_json_object, run_cli
-from .outcomes import breakdown_lines
+from .evaluation.outcomes import breakdown_lines
+from .evaluation.tables import (
+    FIXED,
+    blind_lines,
+    default_row,
+    error_cell,
+    per_task_lines,
+    rate_of,
+    replay_label,
+    share_cell,
+)
 from .policy.blind import BLIND
 from .stats import paired_difference, paired_success, rate_cell
-from .tables import FIXED, blind_lines, default_row, error_cell, per_task_lines, rate_of, replay_label, share_cell
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
 AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px

@@ -8,8 +8,8 @@
 
 README marks each generated table with `<!-- results:NAME -->` ... `<!-- /results:NAME -->`; everything between
 the marks is written here from results/default/ (evaluate's, replay's and the closed loop's details) and
-results/seeds/seeds.json, with the same cells the report prints (adlpipe.tables, adlpipe.outcomes). Prose around
-the tables is written by hand; the tables are not.
+results/seeds/seeds.json, with the same cells the report prints (adlpipe.evaluation.tables and .outcomes). Prose
+around the tables is written by hand; the tables are not.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ from pathlib import Path
 from .atomic import atomic_path, write_text_atomic
 from .cli import Parser
 from .errors import AdlError, read_json_object, run_cli
-from .outcomes import breakdown_lines
+from .evaluation.outcomes import breakdown_lines
+from .evaluation.tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
 from .stats import rate_cell
-from .tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
 
 RUN_FILES = ("eval_details.json", "replay_details.json", "replay_closed_loop_details.json")  # the last optional
 

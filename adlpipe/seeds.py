@@ -22,8 +22,8 @@ from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import Parser
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, read_json_object, run_cli
+from .evaluation.tables import default_row, replay_label, seeds_lines
 from .stats import paired_difference
-from .tables import default_row, replay_label, seeds_lines
 
 # (claim, first model, its row, second model, its row, scale): "first's px below scale x second's"
 CLAIMS = (

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from adlpipe.dataset import schema
-from adlpipe.metrics import commitment
+from adlpipe.evaluation.metrics import commitment
 from adlpipe.policy.nets.embed import SinusoidalEmbedding
 from adlpipe.policy.objectives import FlowMatching, MeanFlow, Noise
 

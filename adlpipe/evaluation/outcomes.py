@@ -14,7 +14,7 @@ import io
 
 import numpy as np
 
-from .stats import rate_cell
+from ..stats import rate_cell
 
 PARTS = ("force", "touches", "stroke", "dwell", "placed")
 PART_NAMES = {"force": "force > 20 N on the person", "touches": "grasp / contact missed", "stroke": "stroke short",
