@@ -65,6 +65,7 @@ class Layout:
     frozen: tuple[int, int] | None = None  # frames k0..k1 repeat frame k0's image (a camera driver that froze)
     tf_glitch_s: float | None = None  # the moving tf sample nearest this time is 0.5 m off (a tf glitch)
     idle_start_s: float = 0.0  # the arm holds still this long before it moves (an operator who paused)
+    zero_image_stamps: bool = False  # the camera's header.stamp is 0 (a driver that never sets it); log times right
 
 
 # A wrist camera as labs mount one: fixed to the arm's last moving link by /tf_static, its own topics and size.
@@ -149,8 +150,9 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
                        lambda tn=tn: f.camera_info(tn, cam["frame"], K, width, height,
                                                    *((lay.lens[0], np.array(lay.lens[1])) if lay.lens else ()))))
         late = ns(t + (lay.late_frames or {}).get(k, 0.0) / lay.camera_hz)  # log time; the header keeps tn
+        stamp = 0 if lay.zero_image_stamps else tn
         events.append((late, 3, cam["image"], M.IMAGE,  # made when written: a long bag is never all in memory
-                       lambda tn=tn, k=k: f.image(tn, cam["frame"], *_camera_image(k, lay))))
+                       lambda stamp=stamp, k=k: f.image(stamp, cam["frame"], *_camera_image(k, lay))))
         if lay.depth:
             d = np.full((height, width), 1.5, np.float32) + np.linspace(0, 1, width, dtype=np.float32)
             d[:4] = np.nan  # no return

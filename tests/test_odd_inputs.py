@@ -112,3 +112,18 @@ def test_list_counts_channels_no_decoder_knows_and_errors_stay_short(tmp_path: P
     line = one_line_error(run_module("ingest", bag, "-o", tmp_path / "adl.h5"))
     assert len(line) < 700 and "/cam00/image (foxglove.RawImage)" in line and "and 32 more" in line
     assert not (tmp_path / "adl.h5").exists()
+
+
+def test_images_with_zero_stamps_are_one_line_naming_the_topic(tmp_path: Path) -> None:
+    """A camera driver that never sets header.stamp (0) while the log times are right: one line naming the image
+    topic and the zero stamps, not a claim that the end effector starts decades after the first image."""
+    import yaml
+    from layouts import Layout, topic_map, write_layout_bag
+
+    lay = Layout(zero_image_stamps=True)
+    bag, _t, _p = write_layout_bag(tmp_path / "zero.mcap", lay)
+    cfg = tmp_path / "map.yaml"
+    cfg.write_text(yaml.safe_dump(topic_map(lay)))
+    line = one_line_error(run_module("ingest", bag, "-o", tmp_path / "adl.h5", "--config", cfg))
+    assert f"topic {topic_map(lay)['image']}" in line and "header.stamp is zero" in line
+    assert "after the first image" not in line and not (tmp_path / "adl.h5").exists()

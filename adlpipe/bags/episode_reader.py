@@ -104,6 +104,17 @@ def stamp_s(msg: object) -> float:
     return int(sec) + int(nsec) * 1e-9
 
 
+def stamped(msg: object, where: str) -> float:
+    """An image's header.stamp in seconds; a zero stamp (a driver that never sets it) is one line: such frames
+    cannot be put in time beside tf and the joints."""
+    t = stamp_s(msg)
+    if t == 0.0:
+        raise AdlError(f"{where}: header.stamp is zero (a camera driver that never sets it): its frames cannot be "
+                       "aligned with tf and the joints; set the stamps in the driver, or restamp the bag from its "
+                       "log times before ingest")
+    return t
+
+
 def check_name(name: str, what: str, where: str) -> str:
     """Frame, joint and object names end up as HDF5 strings: no control characters (NUL among them)."""
     if any(ord(c) < 32 for c in name) or len(name) > 256:
@@ -245,7 +256,8 @@ class _Streams:
         elif topic == tm.image:
             if self.image is None or self.sink:
                 msg = decode()
-                image, t = as_rgb8(decode_image(msg, self.where(topic)), self.where(topic)), stamp_s(msg)
+                where = self.where(topic)
+                image, t = as_rgb8(decode_image(msg, where), where), stamped(msg, where)
                 if self.image is None:
                     self.image, self.t_img = image, t
                     self.camera_frame = check_name(str(msg.header.frame_id), "frame", self.where(topic))
@@ -260,7 +272,7 @@ class _Streams:
         elif topic in (tm.depth, tm.affordance):
             if topic not in self.settled or self.sink:
                 msg = decode()
-                t = stamp_s(msg)
+                t = stamped(msg, self.where(topic))
                 if topic not in self.settled:
                     (self.depth if topic == tm.depth else self.aff).offer(t, msg, self.t_img)
                     if self.t_img is not None and t > self.t_img + tm.sync_tolerance_s:
