@@ -127,3 +127,27 @@ def test_images_with_zero_stamps_are_one_line_naming_the_topic(tmp_path: Path) -
     line = one_line_error(run_module("ingest", bag, "-o", tmp_path / "adl.h5", "--config", cfg))
     assert f"topic {topic_map(lay)['image']}" in line and "header.stamp is zero" in line
     assert "after the first image" not in line and not (tmp_path / "adl.h5").exists()
+
+
+def test_a_truncated_copy_under_hdf5_ext_prefix_is_blamed_not_the_datasets_file(tmp_path: Path) -> None:
+    """HDF5_EXT_PREFIX sends HDF5 to a truncated copy of an episode file: the refusal names the variable and the
+    dataset's own (healthy) file as the one to read, and without the variable the same dataset reads."""
+    import os
+    import subprocess
+    import sys
+
+    run_module("record", "--out", tmp_path / "bags", "--episodes", "1", "--size", "32", "--camera-hz", "2",
+               "--tasks", "comb the hair", "pass the water", check=True)
+    data = tmp_path / "adl.h5"
+    run_module("ingest", *sorted((tmp_path / "bags").iterdir()), "-o", data, "--size", "32", check=True)
+    prefix = tmp_path / "prefix"
+    for episode in (tmp_path / "adl.shards").rglob("*.h5"):
+        copy = prefix / episode.relative_to(tmp_path)
+        copy.parent.mkdir(parents=True, exist_ok=True)
+        copy.write_bytes(episode.read_bytes()[:2000])
+    env = {**os.environ, "HDF5_EXT_PREFIX": str(prefix)}
+    proc = subprocess.run([sys.executable, "-m", "adlpipe.split", data, "-o", tmp_path / "split.json"],
+                          capture_output=True, text=True, env=env, cwd=tmp_path)
+    line = one_line_error(proc)
+    assert f"HDF5_EXT_PREFIX={prefix}" in line and "unset HDF5_EXT_PREFIX to read" in line
+    run_module("split", data, "-o", tmp_path / "split.json", check=True)

@@ -32,6 +32,7 @@ per bag, one run folder per ingest: adlpipe.dataset.shards). The index links eac
 
 from __future__ import annotations
 
+import os
 import re
 import stat
 from collections.abc import Iterator
@@ -230,6 +231,13 @@ def check_episode_file(path: Path, f: h5py.File, name: str, file: Path) -> None:
         g = f[EPISODES][name]
     except DAMAGED as exc:  # truncated, emptied, not HDF5, unreadable: HDF5 cannot open it
         raise_if_interrupted(exc)
+        prefix = os.environ.get("HDF5_EXT_PREFIX")
+        link = f[EPISODES].get(name, getlink=True)
+        if prefix and any((Path(p) / getattr(link, "filename", "")).is_file() for p in prefix.split(os.pathsep)):
+            # HDF5 looked for the episode's file under this prefix first: the file it could not read is not ours
+            raise AdlError(f"{path}: episode {name}: HDF5_EXT_PREFIX={prefix} sends HDF5 to a copy of its file "
+                           f"there, which cannot be read ({one_line(exc)}); unset HDF5_EXT_PREFIX to read {file}") \
+                from None
         raise AdlError(f"{path}: episode {name}: its file {file} cannot be read ({one_line(exc)}); re-ingest its bag "
                        "into a new dataset, or leave it out (python -m adlpipe.split --skip-bad)") from None
     if Path(g.file.filename).resolve() != file:
