@@ -8,7 +8,7 @@ __version__ = "0.1.0"
 
 
 def _interrupted_while_starting(_signum: int, _frame: object) -> None:
-    print("adlpipe: interrupted", file=sys.stderr)
+    print("adlpipe: interrupted while starting; no output was replaced", file=sys.stderr)
     os._exit(130)
 
 

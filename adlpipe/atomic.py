@@ -13,6 +13,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from .errors import check_interrupted, note_committed
+
 
 def temp_name(path: Path) -> Path:
     """The temp file for `path` in this process: .<name>.tmp<pid> (ingest removes those of dead processes)."""
@@ -27,7 +29,9 @@ def atomic_path(path: Path | str) -> Iterator[Path]:
     tmp = temp_name(path)
     try:
         yield tmp
+        check_interrupted()  # a Ctrl-C swallowed while the temp was written still keeps the old file
         os.replace(tmp, path)
+        note_committed(path)
     except OSError as exc:
         if exc.errno == errno.ENOSPC or not exc.filename:  # name the output the user asked for, not the temp
             raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
@@ -81,8 +85,10 @@ def write_all_atomic(texts: dict[Path, str | bytes]) -> None:
                 tmp.write_bytes(text) if isinstance(text, bytes) else tmp.write_text(text)
             except OSError as exc:
                 raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+        check_interrupted()
         for tmp, path in done:
             os.replace(tmp, path)
+            note_committed(path)
     finally:
         for tmp, _ in done:
             if tmp.exists():

@@ -64,11 +64,45 @@ def os_error_message(exc: OSError) -> str:
     return f"{where}: {reason}" if exc.filename else reason
 
 
+# A Ctrl-C is remembered as well as raised: Python drops a KeyboardInterrupt that lands in a finaliser or a weakref
+# callback ("Exception ignored in ..."), and h5py's and torch's objects run many. Every atomic commit checks the flag
+# first (adlpipe.atomic), so a swallowed Ctrl-C still stops the stage before it replaces an output.
+_INTERRUPTED = threading.Event()
+_COMMITTED: list[str] = []  # outputs replaced in full since the stage started, in order
+
+
+def _on_sigint(signum: int, frame: object) -> None:
+    _INTERRUPTED.set()
+    raise KeyboardInterrupt
+
+
+def check_interrupted() -> None:
+    """Raise KeyboardInterrupt if a Ctrl-C came, even one that was swallowed where it landed."""
+    if _INTERRUPTED.is_set():
+        raise KeyboardInterrupt
+
+
+def note_committed(path: Path | str) -> None:
+    """An output was replaced in full (the interrupt message says so)."""
+    _COMMITTED.append(str(path))
+
+
+def interrupted_line(prog: str) -> str:
+    """What an interrupted stage leaves: the outputs it had already replaced in full, or none."""
+    done = list(dict.fromkeys(_COMMITTED))
+    if not done:
+        return f"{prog}: interrupted; no output was replaced (every output is as it was before this run)"
+    names = ", ".join(done[-3:]) + (f" and {len(done) - 3} earlier" if len(done) > 3 else "")
+    return f"{prog}: interrupted; written in full before the interrupt: {names}; every other output is as it was"
+
+
 def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] | None = None) -> int:
     """Run a stage's main(); AdlError, OS errors and KeyboardInterrupt become one line on stderr. Outputs are
     written atomically (adlpipe.atomic), so whatever stopped the stage, the old files are still there."""
-    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+    _INTERRUPTED.clear()
+    _COMMITTED.clear()
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _on_sigint)
     try:
         return main(argv)
     except AdlError as exc:
@@ -76,7 +110,7 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
     except OSError as exc:
         return _fail(prog, os_error_message(exc))
     except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
+        print(interrupted_line(prog), file=sys.stderr)
         return 130
     finally:
         if _running_as(prog):

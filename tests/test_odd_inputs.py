@@ -151,3 +151,48 @@ def test_a_truncated_copy_under_hdf5_ext_prefix_is_blamed_not_the_datasets_file(
     line = one_line_error(proc)
     assert f"HDF5_EXT_PREFIX={prefix}" in line and "unset HDF5_EXT_PREFIX to read" in line
     run_module("split", data, "-o", tmp_path / "split.json", check=True)
+
+
+def test_a_ctrl_c_swallowed_by_a_finaliser_still_stops_the_stage_before_it_commits(tmp_path: Path) -> None:
+    """Python drops a KeyboardInterrupt raised inside a weakref callback or a finaliser (as h5py's and torch's
+    objects run): a real SIGINT landing there must still stop the stage before it replaces an output, and the stage
+    says that nothing was replaced."""
+    import io
+    import os
+    import signal
+    import sys
+    import weakref
+    from contextlib import redirect_stderr
+
+    from adlpipe.atomic import write_text_atomic
+    from adlpipe.errors import run_cli
+
+    out = tmp_path / "out.txt"
+    out.write_text("old")
+
+    class Held:
+        pass
+
+    def main(_argv: list[str] | None) -> int:
+        def swallowing(_ref: object) -> None:
+            os.kill(os.getpid(), signal.SIGINT)  # the handler runs here, inside the callback: the raise is dropped
+            sum(range(1000))
+
+        held = Held()
+        ref = weakref.ref(held, swallowing)  # noqa: F841 - the callback runs when `held` goes
+        del held
+        write_text_atomic(out, "new")
+        return 0
+
+    old, old_hook = signal.getsignal(signal.SIGINT), sys.unraisablehook
+    err, dropped = io.StringIO(), []
+    sys.unraisablehook = lambda u: dropped.append(u.exc_type)
+    try:
+        with redirect_stderr(err):
+            rc = run_cli("adlpipe.test", main, [])
+    finally:
+        signal.signal(signal.SIGINT, old)
+        sys.unraisablehook = old_hook
+    assert dropped == [KeyboardInterrupt]  # Python dropped the interrupt where it landed ...
+    assert rc == 130 and out.read_text() == "old"  # ... and the stage stopped before replacing the output
+    assert "interrupted; no output was replaced" in err.getvalue()

@@ -25,7 +25,7 @@ from pathlib import Path
 import h5py
 
 from ..atomic import atomic_path
-from ..errors import AdlError
+from ..errors import AdlError, check_interrupted, note_committed
 from ..lock import remove_if_unlocked
 from . import schema
 
@@ -53,6 +53,7 @@ def commit(index: Path, run: str, tmp_dir: Path, rows: list[dict[str, str]], n_w
     """Move the run's folder into place and replace the index with the old rows plus `rows` (file names relative
     to the run folder)."""
     final = shards_dir(index) / run
+    check_interrupted()  # a swallowed Ctrl-C: the dataset stays as it was
     os.replace(tmp_dir, final)
     old = []
     if index.exists():
@@ -68,7 +69,9 @@ def commit_share(index: Path, run: str, tmp_dir: Path, rows: list[dict[str, str]
     (tmp_dir / SHARE_CATALOG).write_text(json.dumps(
         {"format_version": schema.FORMAT_VERSION, "n_waypoints": n_waypoints, "image_size": image_size,
          "rows": rows}))
+    check_interrupted()
     os.replace(tmp_dir, shards_dir(index) / run)
+    note_committed(shards_dir(index) / run)
 
 
 def gather(index: Path) -> dict[str, int]:
