@@ -151,13 +151,16 @@ def study_tables(study: Path) -> dict[str, list[str]]:
 
 def save_study(pipeline: Path, results: Path) -> None:
     """Keep the study's details, reports and training logs in RESULTS/study (all readable before any is copied)."""
-    missing = [k for k in STUDY_FILES if not (pipeline / k).is_file()]
+    required = list(STUDY_FILES)[:2]  # seed 0's evaluation and replay; the seeds and the closed loop may follow
+    missing = [k for k in required if not (pipeline / k).is_file()]
     if missing:
         raise AdlError(f"{pipeline}: the study has not finished ({missing[0]} missing); run dvc repro there first")
-    for src in STUDY_FILES:
+    present = [k for k in STUDY_FILES if (pipeline / k).is_file()]
+    for src in present:
         if src.endswith(".json"):
             _load(pipeline / src)
-    for src, name in STUDY_FILES.items():
+    for src in present:
+        name = STUDY_FILES[src]
         with atomic_path(results / "study" / name) as tmp:
             shutil.copyfile(pipeline / src, tmp)
     for log in sorted((pipeline / "metrics" / "train").glob("*/*.csv")):
