@@ -475,14 +475,14 @@ def main(argv: list[str] | None = None) -> int:
     ev, rp = _load(args.eval), _load(args.replay)
     if "models" not in ev or "success" not in rp:
         raise AdlError(f"{args.eval} / {args.replay}: not evaluate/replay detail files (no 'models' / 'success')")
+    compared = claims(ev, rp)
+    logs = {m: args.train_logs / f"{m}.csv" for m in ev["models"]}
+    figs = figures(ev, logs, args.output.parent / "figures")
     usable = [m for m in ev["models"] if default_row(ev, m) is not None] if isinstance(ev["models"], dict) else []
     if not usable or not isinstance(rp["success"], dict) or not rp["success"]:
         what = args.eval if not usable else args.replay
         raise AdlError(f"{what}: holds no usable figures (no evaluated model rows / no replayed policy): nothing to "
                        "report; re-run evaluate and replay")
-    compared = claims(ev, rp)
-    logs = {m: args.train_logs / f"{m}.csv" for m in ev["models"]}
-    figs = figures(ev, logs, args.output.parent / "figures")
     parts = ["# adlpipe report", "",
              f"Test episodes: {ev['n_test']} (error); replay: {replay_scenes(rp)}, {rp.get('checkpoint', 'best')} "
              "checkpoints. Figures of the best validation checkpoints with each model's default sampler.", "",
