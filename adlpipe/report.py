@@ -477,12 +477,15 @@ def main(argv: list[str] | None = None) -> int:
         raise AdlError(f"{args.eval} / {args.replay}: not evaluate/replay detail files (no 'models' / 'success')")
     compared = claims(ev, rp)
     logs = {m: args.train_logs / f"{m}.csv" for m in ev["models"]}
-    figs = figures(ev, logs, args.output.parent / "figures")
+    for log in logs.values():  # a log that cannot be read is named first
+        if log.exists():
+            _read_log(log)
     usable = [m for m in ev["models"] if default_row(ev, m) is not None] if isinstance(ev["models"], dict) else []
     if not usable or not isinstance(rp["success"], dict) or not rp["success"]:
         what = args.eval if not usable else args.replay
         raise AdlError(f"{what}: holds no usable figures (no evaluated model rows / no replayed policy): nothing to "
                        "report; re-run evaluate and replay")
+    figs = figures(ev, logs, args.output.parent / "figures")
     parts = ["# adlpipe report", "",
              f"Test episodes: {ev['n_test']} (error); replay: {replay_scenes(rp)}, {rp.get('checkpoint', 'best')} "
              "checkpoints. Figures of the best validation checkpoints with each model's default sampler.", "",
