@@ -41,50 +41,55 @@ def test_gather_with_nothing_to_gather_says_so(tmp_path: Path) -> None:
     shutil.rmtree(tmp_path / "adl.shards", ignore_errors=True)
 
 
-def test_an_interrupt_inside_hdf5_reads_is_an_interrupt_not_damage(tmp_path: Path) -> None:
-    """Ctrl-C (SIGALRM with Python's SIGINT handler) at random moments of reading and checking a dataset: every one
-    comes out as KeyboardInterrupt, never as a 'damaged' file (h5py turns an interrupt inside its compiled code into
-    a SystemError caused by it)."""
-    import random
-    import signal
+INTERRUPTS = """
+import json, random, signal, sys
+from adlpipe.dataset import schema
+from adlpipe.errors import AdlError
 
-    from adlpipe.dataset import schema
-    from adlpipe.errors import AdlError
+data = sys.argv[1]
+signal.signal(signal.SIGALRM, signal.default_int_handler)
 
-    run_module("record", "--out", tmp_path / "bags", "--episodes", "1", "--size", "32", "--camera-hz", "2",
-               "--tasks", "comb the hair", "pass the water", check=True)
-    data = tmp_path / "adl.h5"
-    run_module("ingest", *sorted((tmp_path / "bags").iterdir()), "-o", data, "--size", "32", check=True)
-    old = signal.signal(signal.SIGALRM, signal.default_int_handler)
 
-    def disarm() -> None:
-        while True:  # an interrupt may land here too: disarming is retried until it holds
-            try:
-                signal.setitimer(signal.ITIMER_REAL, 0)
-                return
-            except KeyboardInterrupt:
-                continue
+def disarm():
+    while True:  # an interrupt may land here too: disarming is retried until it holds
+        try:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            return
+        except KeyboardInterrupt:
+            continue
 
-    rng, outcomes = random.Random(0), []
+
+rng, outcomes = random.Random(0), []
+for _ in range(50):
     try:
-        for _ in range(50):
-            try:
-                try:
-                    # re-armed every 5 ms: an interrupt h5py swallows in a finaliser ("Exception ignored") is
-                    # followed by the next, as a user presses Ctrl-C again
-                    signal.setitimer(signal.ITIMER_REAL, rng.uniform(0.0005, 0.02), 0.005)
-                    while True:
-                        with schema.open_dataset(data) as f:
-                            schema.read_episode(f, schema.episode_names(f)[0])
-                finally:
-                    disarm()
-            except KeyboardInterrupt:
-                outcomes.append("interrupt")
-            except AdlError as exc:
-                outcomes.append(str(exc))
-    finally:
-        disarm()
-        signal.signal(signal.SIGALRM, old)
+        try:
+            # re-armed every 5 ms: an interrupt Python drops in a finaliser is followed by the next, as a user
+            # presses Ctrl-C again
+            signal.setitimer(signal.ITIMER_REAL, rng.uniform(0.0005, 0.02), 0.005)
+            while True:
+                with schema.open_dataset(data) as f:
+                    schema.read_episode(f, schema.episode_names(f)[0])
+        finally:
+            disarm()
+    except KeyboardInterrupt:
+        outcomes.append("interrupt")
+    except AdlError as exc:
+        outcomes.append(str(exc))
+print(json.dumps(outcomes))
+"""
+
+
+def test_an_interrupt_inside_hdf5_reads_is_an_interrupt_not_damage(ingested: Path) -> None:
+    """Ctrl-C (SIGALRM with Python's SIGINT handler) at 50 random moments of reading and checking a dataset: every
+    one comes out as KeyboardInterrupt, never as a 'damaged' file (h5py turns an interrupt inside its compiled code
+    into a SystemError caused by it). In a process of its own, as a stage runs."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", INTERRUPTS, str(ingested)], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    outcomes = json.loads(proc.stdout.splitlines()[-1])
     assert outcomes == ["interrupt"] * 50, [o for o in outcomes if o != "interrupt"][:3]
 
 
@@ -129,20 +134,18 @@ def test_images_with_zero_stamps_are_one_line_naming_the_topic(tmp_path: Path) -
     assert "after the first image" not in line and not (tmp_path / "adl.h5").exists()
 
 
-def test_a_truncated_copy_under_hdf5_ext_prefix_is_blamed_not_the_datasets_file(tmp_path: Path) -> None:
+def test_a_truncated_copy_under_hdf5_ext_prefix_is_blamed_not_the_datasets_file(ingested: Path,
+                                                                                tmp_path: Path) -> None:
     """HDF5_EXT_PREFIX sends HDF5 to a truncated copy of an episode file: the refusal names the variable and the
     dataset's own (healthy) file as the one to read, and without the variable the same dataset reads."""
     import os
     import subprocess
     import sys
 
-    run_module("record", "--out", tmp_path / "bags", "--episodes", "1", "--size", "32", "--camera-hz", "2",
-               "--tasks", "comb the hair", "pass the water", check=True)
-    data = tmp_path / "adl.h5"
-    run_module("ingest", *sorted((tmp_path / "bags").iterdir()), "-o", data, "--size", "32", check=True)
+    data = ingested
     prefix = tmp_path / "prefix"
-    for episode in (tmp_path / "adl.shards").rglob("*.h5"):
-        copy = prefix / episode.relative_to(tmp_path)
+    for episode in (data.parent / "adl.shards").rglob("*.h5"):
+        copy = prefix / episode.relative_to(data.parent)
         copy.parent.mkdir(parents=True, exist_ok=True)
         copy.write_bytes(episode.read_bytes()[:2000])
     env = {**os.environ, "HDF5_EXT_PREFIX": str(prefix)}
