@@ -190,12 +190,13 @@ def test_a_ctrl_c_swallowed_by_a_finaliser_still_stops_the_stage_before_it_commi
     old, old_hook = signal.getsignal(signal.SIGINT), sys.unraisablehook
     err, dropped = io.StringIO(), []
     sys.unraisablehook = lambda u: dropped.append(u.exc_type)
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # as a stage starts (whatever an earlier test left)
     try:
         with redirect_stderr(err):
             rc = run_cli("adlpipe.test", main, [])
     finally:
         signal.signal(signal.SIGINT, old)
         sys.unraisablehook = old_hook
-    assert dropped == [KeyboardInterrupt]  # Python dropped the interrupt where it landed ...
+    assert KeyboardInterrupt in dropped  # Python dropped the interrupt where it landed (other garbage may go too) ...
     assert rc == 130 and out.read_text() == "old"  # ... and the stage stopped before replacing the output
     assert "interrupted; no output was replaced" in err.getvalue()
