@@ -178,8 +178,9 @@ def test_a_ctrl_c_swallowed_by_a_finaliser_still_stops_the_stage_before_it_commi
 
     def main(_argv: list[str] | None) -> int:
         def swallowing(_ref: object) -> None:
-            os.kill(os.getpid(), signal.SIGINT)  # the handler runs here, inside the callback: the raise is dropped
-            sum(range(1000))
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(100_000):  # Python runs the handler at a loop's back edge: here, inside the callback,
+                pass  # where the KeyboardInterrupt it raises is dropped
 
         held = Held()
         ref = weakref.ref(held, swallowing)  # noqa: F841 - the callback runs when `held` goes
