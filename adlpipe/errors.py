@@ -101,7 +101,9 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
     written atomically (adlpipe.atomic), so whatever stopped the stage, the old files are still there."""
     _INTERRUPTED.clear()
     _COMMITTED.clear()
-    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN and threading.current_thread() is threading.main_thread():
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGINT) if main_thread else None
+    if previous is not None and previous is not signal.SIG_IGN:
         signal.signal(signal.SIGINT, _on_sigint)
     try:
         return main(argv)
@@ -113,6 +115,9 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
         print(interrupted_line(prog), file=sys.stderr)
         return 130
     finally:
+        _INTERRUPTED.clear()  # the stage is over: its Ctrl-C must not stop whatever runs next in this process
+        if previous is not None and not _running_as(prog):
+            signal.signal(signal.SIGINT, previous)
         if _running_as(prog):
             # The stage is done (its outputs committed, or left as they were): a Ctrl-C now can undo nothing, and
             # during Python's own shutdown it would end the process by SIGINT or print an ignored KeyboardInterrupt
