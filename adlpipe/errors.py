@@ -18,6 +18,14 @@ class AdlError(Exception):
     """
 
 
+class NoDecoder(AdlError):
+    """A bag's channel whose message encoding no installed decoder reads (protobuf, JSON, ...)."""
+
+    def __init__(self, message: str, encoding: str) -> None:
+        super().__init__(message)
+        self.encoding = encoding
+
+
 def read_json_object(path: Path, what: str, key: str | None = None) -> dict:
     """A JSON object from `path` (holding `key`, if given), or one line naming the file and what is wrong."""
     try:

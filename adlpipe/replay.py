@@ -309,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
         worker = replay_one
     else:
         eps, rates = recorded_episodes(args, names)
-        scenes = [from_episode(ep, ep.name) for ep in eps]
+        scenes = [from_episode(ep) for ep in eps]
         where = "test split"
         if args.closed_loop:
             worker, jobs = closed_loop_one, closed_loop_jobs(args, eps, rates, checkpoint, placement)

@@ -363,17 +363,18 @@ def label_steps(ax: object, steps: list[int]) -> None:
     ax.xaxis.set_minor_locator(NullLocator())
 
 
-def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> dict[Path, bytes]:
+def figures(ev: dict, read: dict[str, dict[str, list[float]]], out_dir: Path) -> dict[Path, bytes]:
     """The seed's Fig. 2 (train/test loss FM vs DP, one panel each: their losses are of different objectives),
     val px vs epoch, px and ms vs steps (all models on a log axis, and beside it the models within 3x of the best on
-    a linear one, so one far-off model does not hide the others' differences), as PNG files."""
+    a linear one, so one far-off model does not hide the others' differences), as PNG files. read: each model's
+    training log columns (_read_log)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     made: dict[Path, bytes] = {}
-    styles = model_styles(list(ev.get("models", {})) or list(logs))
+    styles = model_styles(list(ev.get("models", {})) or list(read))
 
     def save(fig, name: str) -> None:  # noqa: ANN001
         buf = io.BytesIO()
@@ -381,7 +382,6 @@ def figures(ev: dict, logs: dict[str, Path], out_dir: Path) -> dict[Path, bytes]
         plt.close(fig)
         made[out_dir / name] = buf.getvalue()  # written with the report, all or none
 
-    read = {m: _read_log(p) for m, p in logs.items() if p.exists()}
     if read:
         pair = [m for m in ("fm_cnn", "dp_cnn") if m in read]
         fig, axes = plt.subplots(1, max(len(pair), 1), figsize=(5.5 * max(len(pair), 1), 4), squeeze=False)
@@ -477,15 +477,13 @@ def main(argv: list[str] | None = None) -> int:
         raise AdlError(f"{args.eval} / {args.replay}: not evaluate/replay detail files (no 'models' / 'success')")
     compared = claims(ev, rp)
     logs = {m: args.train_logs / f"{m}.csv" for m in ev["models"]}
-    for log in logs.values():  # a log that cannot be read is named first
-        if log.exists():
-            _read_log(log)
+    read = {m: _read_log(p) for m, p in logs.items() if p.exists()}  # a log that cannot be read is named first
     usable = [m for m in ev["models"] if default_row(ev, m) is not None] if isinstance(ev["models"], dict) else []
     if not usable or not isinstance(rp["success"], dict) or not rp["success"]:
         what = args.eval if not usable else args.replay
         raise AdlError(f"{what}: holds no usable figures (no evaluated model rows / no replayed policy): nothing to "
                        "report; re-run evaluate and replay")
-    figs = figures(ev, logs, args.output.parent / "figures")
+    figs = figures(ev, read, args.output.parent / "figures")
     parts = ["# adlpipe report", "",
              f"Test episodes: {ev['n_test']} (error); replay: {replay_scenes(rp)}, {rp.get('checkpoint', 'best')} "
              "checkpoints. Figures of the best validation checkpoints with each model's default sampler.", "",

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
-from ..errors import AdlError
+from ..errors import AdlError, NoDecoder
 from .messages import typestore
 from .splits import recording_parts
 
@@ -179,8 +179,8 @@ class BagSource:
                     break
             if decoder is None:
                 name = schema.name if schema else "?"
-                raise AdlError(f"{self.path}: topic {channel.topic}: no decoder for message type {name} "
-                               f"(encoding {channel.message_encoding!r})")
+                raise NoDecoder(f"{self.path}: topic {channel.topic}: no decoder for message type {name} "
+                                f"(encoding {channel.message_encoding!r})", channel.message_encoding)
             cache[key] = decoder
         if message.data[:4] == ZSTD_MAGIC:  # rosbag2 'message' compression: each payload zstd-compressed
             raise AdlError(f"{self.path}: a compressed rosbag2 split (each message zstd-compressed); give its folder, "

@@ -8,7 +8,7 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import AdlError
+from ..errors import NoDecoder
 from .episode_reader import stamp_s
 from .reader import BagSource
 from .splits import split_note
@@ -71,10 +71,8 @@ def survey(bag: Path) -> Survey:
             continue
         try:
             msg = decode()
-        except AdlError as exc:
-            if "no decoder for message type" not in str(exc):
-                raise  # a message that does not decode is a bad bag; a type no decoder knows is listed as such
-            s.undecoded = "no decoder" + (f" for {str(exc).rsplit('(', 1)[1].rstrip(')')}" if "(" in str(exc) else "")
+        except NoDecoder as exc:  # a type no decoder knows is listed as such; a message that does not decode is a
+            s.undecoded = f"no decoder for encoding {exc.encoding!r}"  # bad bag (its AdlError goes on)
             continue
         header = getattr(msg, "header", None)
         if header is not None and hasattr(header, "stamp"):

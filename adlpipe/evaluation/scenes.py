@@ -36,9 +36,9 @@ class ReplayScene:
     traj2d: np.ndarray  # (N, 2) the same in the stored image's pixels
 
 
-def from_episode(ep: Episode, name: str) -> ReplayScene:
+def from_episode(ep: Episode) -> ReplayScene:
     """A recorded test episode as a replay scene."""
-    return ReplayScene(name, ep.task, ep.rgb, ep.affordance, ep.depth, ep.object_names, ep.objects, ep.duration_s,
+    return ReplayScene(ep.name, ep.task, ep.rgb, ep.affordance, ep.depth, ep.object_names, ep.objects, ep.duration_s,
                        ep.traj3d, ep.traj2d)
 
 

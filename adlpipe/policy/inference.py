@@ -99,11 +99,7 @@ def predict_episodes(model_dir: Path, checkpoint: str, data: Path, names: list[s
         schema.check_horizon(model_dir, policy.cfg.horizon, f, data)
         obs = torch.stack([torch.from_numpy(observation(f[schema.EPISODES][n], policy.cfg.image_size,
                                                         policy.cfg.use_depth, policy.cfg.cameras)) for n in names])
-    out = {}
-    for steps in steps_for(policy.family, fm_steps, dp_steps):
-        pred = norm.unnormalize(predict(policy, obs, steps, None, placement.generator(seed), placement))
-        out[label_of(model_dir, policy.default_method, policy.family, steps)] = pred.numpy()
-    return out
+    return predictions(model_dir, policy, norm, obs, fm_steps, dp_steps, seed, placement)
 
 
 def predict_scenes(model_dir: Path, checkpoint: str, scenes: list, fm_steps: list[int], dp_steps: list[int],
@@ -117,6 +113,12 @@ def predict_scenes(model_dir: Path, checkpoint: str, scenes: list, fm_steps: lis
     norm = Normalizer(ck["stats"])
     obs = torch.stack([torch.from_numpy(observation_from_arrays(s.rgb, s.affordance, s.depth, cfg.image_size,
                                                                 cfg.use_depth)) for s in scenes])
+    return predictions(model_dir, policy, norm, obs, fm_steps, dp_steps, seed, placement)
+
+
+def predictions(model_dir: Path, policy: Policy, norm: Normalizer, obs: torch.Tensor, fm_steps: list[int],
+                dp_steps: list[int], seed: int, placement: Placement) -> dict[str, np.ndarray]:
+    """label -> the policy's unnormalised predictions for `obs` at each of its step counts."""
     out = {}
     for steps in steps_for(policy.family, fm_steps, dp_steps):
         pred = norm.unnormalize(predict(policy, obs, steps, None, placement.generator(seed), placement))
