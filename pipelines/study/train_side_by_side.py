@@ -1,6 +1,7 @@
 """Run the study's training stages two at a time, one thread each, then record them in dvc.lock.
 
     cd pipelines/study && dvc repro split && python train_side_by_side.py && dvc repro
+    python train_side_by_side.py train_seeds train_closed_loop     # only these stages (names or their prefixes)
 
 `dvc repro` runs one stage at a time; on 2 cores two one-thread trainings side by side finish sooner than two
 two-thread trainings in turn. This runs each training stage's own command (as DVC renders it from dvc.yaml and
@@ -23,9 +24,11 @@ ORDER = ("train@", "train_closed_loop@", "train_seeds@")
 SIDE_BY_SIDE = 2
 
 
-def stale_training_stages(repo: Repo) -> list:
+def stale_training_stages(repo: Repo, wanted: tuple[str, ...] = ORDER) -> list:
+    """The training stages named by `wanted` (names or prefixes) that are not up to date, in ORDER."""
     stale = set(repo.status())  # names of the stages whose deps, params or outs changed
-    stages = [s for s in repo.index.stages if s.name.startswith(ORDER) and s.name in stale]
+    stages = [s for s in repo.index.stages
+              if s.name.startswith(ORDER) and s.name.startswith(wanted) and s.name in stale]
     return sorted(stages, key=lambda s: next(i for i, p in enumerate(ORDER) if s.name.startswith(p)))
 
 
@@ -36,9 +39,9 @@ def run(stage, logs: Path) -> tuple[str, int, float]:  # noqa: ANN001 - a dvc St
     return stage.name, rc, time.time() - t0
 
 
-def main() -> int:
+def main(argv: list[str]) -> int:
     repo = Repo(".")
-    stages = stale_training_stages(repo)
+    stages = stale_training_stages(repo, tuple(argv) or ORDER)
     logs = Path("logs")
     logs.mkdir(exist_ok=True)
     print(f"{len(stages)} training stage(s) to run, {SIDE_BY_SIDE} at a time: {', '.join(s.name for s in stages)}")
@@ -55,4 +58,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(sys.argv[1:]))
