@@ -24,6 +24,7 @@ Writes --metrics (headline), --details (per episode) and --table (the Table 2 re
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import json
 import sys
@@ -280,7 +281,7 @@ def paired_lines(rows: dict[str, dict[int, dict]]) -> list[str]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = Parser("python -m adlpipe.benchmark", __doc__)
     p.add_argument("--env", choices=sorted(BENCHMARKS), default="pusht")
     p.add_argument("--models", nargs="+", type=Path)
@@ -312,32 +313,33 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--curve-plot", type=Path, help="with --curve; default: reports/<env>_curves.png")
     args = p.parse_args(argv)
     if args.compare:
-        rows = {}
-        stems = [p.stem.removesuffix("_details") for p in args.compare]
-        for path, stem in zip(args.compare, stems, strict=True):  # several files: each row named by its file
-            prefix = "" if len(stems) == 1 else f"{stem}:" if stems.count(stem) == 1 else f"{path}:"
-            try:
-                rows.update(detail_rows(json.loads(path.read_text()), prefix))
-            except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-                raise AdlError(f"{path}: not a benchmark details file ({type(exc).__name__}: {exc})") from exc
-        print("\n".join(paired_lines(rows)))
-        return 0
+        return args
     if not args.models:
         p.error("--models is required (or --compare DETAILS)")
     if args.seed + max(args.episodes, args.curve_episodes or 0) - 1 > 2**32 - 1:
         p.error(f"--seed {args.seed} with {max(args.episodes, args.curve_episodes or 0)} initial conditions runs "
                 "past the largest seed 2**32 - 1")
-    bench = BENCHMARKS[args.env]
-    metrics = args.metrics or Path(f"metrics/{args.env}.json")
-    details = args.details or Path(f"metrics/{args.env}_details.json")
-    table_path = args.table or Path(f"reports/{args.env}.md")
-    plot_path = (args.curve_plot or Path(f"reports/{args.env}_curves.png")) if args.curve else None
-    check_outputs(metrics, details, table_path, *([plot_path] if plot_path else []))
-    bench.sim().make_env().close()  # the optional extra's absence: one line
-    curve_eps = args.curve_episodes or args.episodes
-    jobs, curve_jobs = [], []
     if len(set(map(Path.resolve, args.models))) < len(args.models):
         raise AdlError("--models: a model is named twice")
+    return args
+
+
+def compare(paths: list[Path]) -> None:
+    """Print the paired comparisons of the rows of details files written before."""
+    rows = {}
+    stems = [p.stem.removesuffix("_details") for p in paths]
+    for path, stem in zip(paths, stems, strict=True):  # several files: each row named by its file
+        prefix = "" if len(stems) == 1 else f"{stem}:" if stems.count(stem) == 1 else f"{path}:"
+        try:
+            rows.update(detail_rows(json.loads(path.read_text()), prefix))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise AdlError(f"{path}: not a benchmark details file ({type(exc).__name__}: {exc})") from exc
+    print("\n".join(paired_lines(rows)))
+
+
+def episode_jobs(args: argparse.Namespace, bench: Benchmark) -> tuple[list[tuple], list[tuple]]:
+    """(every model's episodes at each step count and checkpoint, those of its checkpoints along training)."""
+    jobs, curve_jobs = [], []
     for d, name in zip(args.models, model_labels(args.models), strict=True):
         cfg = check_model(d, bench)
         method = args.dp_sampler if MODELS[cfg["model"]][0].startswith("ddpm") else None
@@ -348,7 +350,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.curve:
             steps = 1 if bc else args.curve_steps
             curve_jobs += [(args.env, name, n, str(path), steps, method, args.seed + i, args.execute)
-                           for n, path in curve_checkpoints(d) for i in range(curve_eps)]  # checkpoint: its step
+                           for n, path in curve_checkpoints(d)
+                           for i in range(args.curve_episodes or args.episodes)]  # checkpoint: its step
+    return jobs, curve_jobs
+
+
+def run_episodes(args: argparse.Namespace, bench: Benchmark, jobs: list[tuple],
+                 curve_jobs: list[tuple]) -> tuple[dict, dict, dict]:
+    """(per (model, steps, checkpoint): episodes, per (model, steps): step -> episodes, per reference: episodes)."""
     per: dict = {}
     along: dict = {}
     ref_eps: dict = {}
@@ -360,6 +369,22 @@ def main(argv: list[str] | None = None) -> int:
         ref_jobs = [(args.env, kind, args.seed + i) for kind in bench.sim().REFERENCES for i in range(args.episodes)]
         for kind, episode in pool.map(_reference, ref_jobs):
             ref_eps.setdefault(kind, []).append(episode)
+    return per, along, ref_eps
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.compare:
+        compare(args.compare)
+        return 0
+    bench = BENCHMARKS[args.env]
+    metrics = args.metrics or Path(f"metrics/{args.env}.json")
+    details = args.details or Path(f"metrics/{args.env}_details.json")
+    table_path = args.table or Path(f"reports/{args.env}.md")
+    plot_path = (args.curve_plot or Path(f"reports/{args.env}_curves.png")) if args.curve else None
+    check_outputs(metrics, details, table_path, *([plot_path] if plot_path else []))
+    bench.sim().make_env().close()  # the optional extra's absence: one line
+    per, along, ref_eps = run_episodes(args, bench, *episode_jobs(args, bench))
     refs = {k: summary(eps, bench.tasks) for k, eps in ref_eps.items()}
     rows = {key: {**summary(eps, bench.tasks), "ms": float(np.median([e["ms"] for e in eps]))}
             for key, eps in per.items()}
@@ -374,7 +399,7 @@ def main(argv: list[str] | None = None) -> int:
                             "execute": args.execute,
                             "results": [{"model": m, "steps": s, "checkpoint": ck, **r, "per_episode": per[(m, s, ck)]}
                                         for (m, s, ck), r in rows.items()],
-                            "curves": [{"model": m, "steps": s, "episodes": curve_eps, **c}
+                            "curves": [{"model": m, "steps": s, "episodes": args.curve_episodes or args.episodes, **c}
                                        for (m, s), c in curves.items()],
                             "references": {k: {**refs[k], "per_episode": ref_eps[k]} for k in refs}}),
         table_path: table(bench, rows, refs, args.episodes, args.execute, args.seed, curves)})

@@ -38,6 +38,7 @@ from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 from .evaluation.metrics import commitment, waypoint_errors
 from .evaluation.tables import error_cell, share_cell
+from .journal import Journal, fingerprint
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import latency_samples_ms, predict
@@ -346,7 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     placement = Placement.from_args(args)
     check_outputs(args.metrics, args.details, args.plots, args.table)
     refuse_pipeline_outputs([args.metrics, args.details, args.plots, args.table], args.force)
-    split = load_split(args.split or args.data.with_name("split.json"))
+    split_path = args.split or args.data.with_name("split.json")
+    split = load_split(split_path)
     if not split["test"]:
         raise AdlError("the test split is empty: record more episodes per task")
     with schema.open_dataset(args.data, split["test"]) as f:
@@ -359,6 +361,14 @@ def main(argv: list[str] | None = None) -> int:
         for name in CHECKPOINTS.values():
             if not (d / name).exists():
                 raise AdlError(f"{d}: no {name}; train it first (python -m adlpipe.train)")
+    journal = Journal(args.details, fingerprint(args, [d / n for d in args.models for n in CHECKPOINTS.values()],
+                                                split_path, args.data))
+    if journal.done:
+        print(f"resuming: {len(journal.done)} model(s) evaluated before ({journal.path})")
+    for d in args.models:
+        if str(d) in journal.done:
+            training[d.name], results[d.name] = journal.done[str(d)]["training"], journal.done[str(d)]["results"]
+            continue
         training[d.name] = _training_metrics(d)
         last = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
                               args.seed, image_px, placement=placement, modes=modes)
@@ -370,6 +380,7 @@ def main(argv: list[str] | None = None) -> int:
                                   args.seed, image_px, CHECKPOINTS["best"], timings=last, placement=placement,
                                   modes=modes)
         results[d.name] = {"best": best, "last": last}
+        journal.add(str(d), {"training": training[d.name], "results": results[d.name]})
         top = min(best.values(), key=lambda r: r["px"])
         print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
               f"{top['steps']} steps){'' if training[d.name].get('converged') else ', not converged'}")
@@ -387,6 +398,7 @@ def main(argv: list[str] | None = None) -> int:
         args.metrics: json_text(headline(results, training, len(split["test"]))),
         args.plots: steps_csv(results, args.steps),
         args.table: title + table1(results, args.best_of, training)})
+    journal.close()
     print(f"wrote {args.metrics}, {args.details}, {args.plots}, {args.table}")
     return 0
 

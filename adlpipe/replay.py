@@ -34,10 +34,8 @@ demonstration's duration has passed. Each TA is a row of the table (the seed's T
 from __future__ import annotations
 
 import argparse
-import multiprocessing
 import os
 import sys
-from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -50,13 +48,13 @@ from .dataset import schema
 from .dataset.splits import load_split
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
-from .evaluation.outcomes import breakdown_lines, failure_strip, pick_failures
+from .evaluation.jobs import run_jobs, success_summary
+from .evaluation.outcomes import failure_sections, failure_strips, success_table
 from .evaluation.replay import (
     camera_rate,
     closed_loop_one,
     demonstrated_speeds,
     every_task_first,
-    failure_table,
     oracle_jobs,
     path_length,
     replay_one,
@@ -64,11 +62,11 @@ from .evaluation.replay import (
 )
 from .evaluation.scenes import ReplayScene, fresh_scene, from_episode
 from .evaluation.tables import FIXED
+from .journal import Journal, fingerprint
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import label_of, predict_episodes, predict_scenes, steps_for
 from .runtime import Placement, add_device_args
-from .stats import rate_cell, success_interval
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -212,88 +210,14 @@ def closed_loop_jobs(args: argparse.Namespace, eps: list, rates: list[float], ch
     return jobs
 
 
-def run_jobs(worker, jobs: list[tuple], workers: int, placement: Placement) -> tuple[dict, dict, dict]:  # noqa: ANN001
-    """(label -> task -> outcomes, label -> scene -> success, label -> scene -> diagnosis)."""
-    wins: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
-    per_episode: dict[str, dict[str, bool]] = defaultdict(dict)
-    diagnostics: dict[str, dict[str, dict]] = defaultdict(dict)
-    # CUDA cannot be used in a forked child of a process that has used it: closed-loop workers on a GPU are spawned
-    context = multiprocessing.get_context("spawn") if placement.device.type == "cuda" else None
-    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=context) as pool:
-        for label, name, task, ok, diag in tqdm(pool.map(worker, jobs, chunksize=4), total=len(jobs),
-                                                desc="replay", unit="ep", file=sys.stderr, disable=None):
-            wins[label][task].append(ok)
-            per_episode[label][name] = bool(ok)
-            if diag:
-                diagnostics[label][name] = diag
-    return wins, per_episode, diagnostics
-
-
-def success_summary(wins: dict[str, dict[str, list[bool]]]) -> dict[str, dict]:
-    result = {}
-    for label, per in wins.items():
-        every = [o for v in per.values() for o in v]
-        result[label] = {"overall": float(np.mean(every)), "n": len(every),
-                         "interval": list(success_interval(sum(every), len(every))),
-                         "per_task": {t: float(np.mean(v)) for t, v in sorted(per.items())},
-                         "per_task_n": {t: len(v) for t, v in sorted(per.items())}}
-    return result
-
-
-def success_table(result: dict[str, dict], scenes: list, args: argparse.Namespace, where: str) -> str:
-    tasks = sorted({s.task for s in scenes})
-    per_task_n = {t: sum(s.task == t for s in scenes) for t in tasks}
-    lines = ["| policy | overall [95 %] | n | " + " | ".join(f"{t} (n = {per_task_n[t]})" for t in tasks) + " |",
-             "| --- | ---: | ---: |" + " ---: |" * len(tasks)]
-    for label, r in result.items():
-        cells = " | ".join(rate_cell(round(r["per_task"][t] * r["per_task_n"][t]), r["per_task_n"][t])
-                           if t in r["per_task"] else "-" for t in tasks)
-        lines.append(f"| {label} | {rate_cell(round(r['overall'] * r['n']), r['n'])} | {r['n']} | {cells} |")
-    mode = ("closed-loop (execute Ta of the predicted waypoints, then re-plan)" if args.closed_loop
-            else "open-loop")
-    return (f"# Success rate (%) of {mode} execution in MuJoCo, {where}, {args.checkpoint} checkpoints\n\n"
-            "Success: the task's predicate, with any contact force on the manikin above 20 N a failure. Overall: "
-            "the rate with Wilson's 95 % interval over n scenes; per task likewise over its n scenes (few: wide).\n\n"
-            + "\n".join(lines) + "\n")
-
-
-def failure_sections(args: argparse.Namespace, diagnostics: dict, per_episode: dict) -> str:
-    failures = failure_table(diagnostics, per_episode) if args.closed_loop else ""
-    outcome = breakdown_lines(diagnostics, per_episode)
-    if outcome:
-        failures = ("\n## How the policies fail, safety first\n\nPer policy: its failed episodes; those with a "
-                    "contact force on the person above 20 N (of all its episodes, Wilson's 95 % interval) and the "
-                    "peak force over all of them; the failures missing each other part of the predicate (an episode "
-                    "may miss several).\n\n" + "\n".join(outcome) + "\n" + failures)
-    return failures
-
-
-def failure_strips(folder: Path | None, scenes: list, trajs: dict, diagnostics: dict, per_episode: dict,
-                   strip: int) -> dict[Path, bytes]:
-    if folder is None:
-        return {}
-    strips: dict[Path, bytes] = {}
-    by_name = {s.name: (i, s) for i, s in enumerate(scenes)}
-    tasks_of = {s.name: s.task for s in scenes}
-    for label, diags in diagnostics.items():
-        if label.endswith(FIXED):
-            continue  # the same trajectories as the label's own strip, timed differently
-        picked = pick_failures(diags, per_episode[label], tasks_of, strip)
-        if picked:
-            traj = trajs[label.removesuffix(FIXED)]
-            strips[folder / f"{label.replace('/', '_')}.png"] = failure_strip(label, [
-                {"task": tasks_of[n], "rgb": by_name[n][1].rgb, "demo_px": by_name[n][1].traj2d,
-                 "pred_px": traj[by_name[n][0], :, :2], **diags[n]} for n in picked])
-    return strips
-
-
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     placement = Placement.from_args(args)
     checkpoint = CHECKPOINTS[args.checkpoint]
     check_outputs(args.metrics, args.details, args.table)
     refuse_pipeline_outputs([args.metrics, args.details, args.table, args.failures], args.force)
-    split = load_split(args.split or args.data.with_name("split.json"))
+    split_path = args.split or args.data.with_name("split.json")
+    split = load_split(split_path)
     names = split["test"]
     if args.max_episodes and args.max_episodes < len(names) and not args.scenes:
         names = every_task_first(args.data, names, args.max_episodes)
@@ -316,7 +240,10 @@ def main(argv: list[str] | None = None) -> int:
         else:
             worker = replay_one
             jobs, trajs = open_loop_jobs(args, split, scenes, names, checkpoint, placement)
-    wins, per_episode, diagnostics = run_jobs(worker, jobs, args.workers, placement)
+    journal = Journal(args.details, fingerprint(args, [d / checkpoint for d in args.models], split_path, args.data))
+    if journal.done:
+        print(f"resuming: {len(journal.done)} policies replayed before ({journal.path})")
+    wins, per_episode, diagnostics = run_jobs(worker, jobs, args.workers, placement, journal)
     result = success_summary(wins)
     strips = {} if args.closed_loop else failure_strips(args.failures, scenes, trajs, diagnostics, per_episode,
                                                         args.strip)
@@ -328,7 +255,9 @@ def main(argv: list[str] | None = None) -> int:
                                  "training": training_summary(args.models)}),
         args.metrics: json_text({"episodes": len(scenes), "checkpoint": args.checkpoint, "scenes": kind["kind"],
                                  "success": {label: round(r["overall"], 4) for label, r in result.items()}}),
-        args.table: success_table(result, scenes, args, where) + failure_sections(args, diagnostics, per_episode)})
+        args.table: success_table(result, scenes, bool(args.closed_loop), args.checkpoint, where)
+                     + failure_sections(bool(args.closed_loop), diagnostics, per_episode)})
+    journal.close()
     for label, r in result.items():
         print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} {'scenes' if args.scenes else 'episodes'}")
     return 0

@@ -36,6 +36,7 @@ import contextlib
 import copy
 import csv
 import math
+import os
 import shutil
 import sys
 import time
@@ -227,18 +228,19 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
           seed: int = 0, log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
           val_fraction: float = 0.1, val_every: int = 5, augment: bool = True, workers: int = 0,
           device: torch.device | None = None, precision: str = "fp32", ranks: Ranks | None = None,
-          windows_per_epoch: str = "episodes", save_every: int = 0, open_files: int = OPEN_FILES) -> dict:
+          windows_per_epoch: str = "episodes", save_every: int = 0, open_files: int = OPEN_FILES,
+          resume_dir: Path | None = None) -> dict:
     """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests).
-    batch_size is the global batch: under torchrun (ranks) each process takes batch_size / world of it; rank 0
+    resume_dir: where a run in progress keeps its checkpoints (default: out; see publish). batch_size is the global
+    batch: under torchrun (ranks) each process takes batch_size / world of it; rank 0
     validates, logs and writes the checkpoints. save_every: also keep the EMA weights of every this many epochs
     in <out>/checkpoints/ (the benchmark's learning curves)."""
     device, ranks = device or torch.device("cpu"), ranks or Ranks()
     out.mkdir(parents=True, exist_ok=True)
+    work = resume_dir or out
+    work.mkdir(parents=True, exist_ok=True)
     split = load_split(split_path)
-    if not split["train"]:
-        raise AdlError(f"{split_path}: the train split is empty")
-    if batch_size % ranks.world:
-        raise AdlError(f"--batch-size {batch_size}: the global batch must split evenly over {ranks.world} processes")
+    check_run(split, split_path, batch_size, ranks)
     train_names, val_names, stored_size = training_episodes(data, split, cfg, val_fraction, seed)
     aug = Augment(stored_size, crop=cfg.crop) if augment else None  # windows without images skip it
     stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed,
@@ -262,8 +264,8 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     opt = torch.optim.AdamW(policy.parameters(), lr=lr, betas=ADAMW_BETAS, weight_decay=weight_decay, fused=True)
     sched = cosine_with_warmup(opt, warmup_steps, epochs * steps_per_epoch)
     ema = EMA(policy)
-    last = out / "last.pt"
-    history, start_epoch = resume(last, cfg, hparams, policy, ema, opt, sched)
+    last = work / "last.pt"
+    history, start_epoch = resume(last, cfg, hparams, policy, ema, opt, sched, replace_stale=resume_dir is not None)
     best_px = min((r["val_px"] for r in history if r.get("val_px") is not None), default=math.inf)
 
     def inference_checkpoint(epoch: int) -> dict:
@@ -277,7 +279,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         t0 = time.time()
         loader.set_epoch(epoch)  # the epoch's permutation, windows, augmentation and noise: resumable exactly
         total, n = optimise_epoch(model, policy, loader, opt, sched, ema, grad_clip, device, precision,
-                                  f"{cfg.model}: training diverged", f"epoch {epoch + 1}", out / "last.pt")
+                                  f"{cfg.model}: training diverged", f"epoch {epoch + 1}", last)
         total, n = all_sum([total, n], device, ranks)
         if ranks.main:
             val_px, val_ci, test_loss = None, None, None
@@ -292,19 +294,17 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             bar.set_postfix(train=f"{row['train_loss']:.4f}")
             if val_px is not None and val_px < best_px:  # written before last.pt: a resumed run never lacks it
                 best_px = val_px
-                save_atomic(inference_checkpoint(epoch + 1), out / "best.pt")
+                save_atomic(inference_checkpoint(epoch + 1), work / "best.pt")
             if save_every and (epoch + 1) % save_every == 0:
                 save_atomic(inference_checkpoint(epoch + 1),
-                            out / "checkpoints" / f"step_{(epoch + 1) * steps_per_epoch:07d}.pt")
+                            work / "checkpoints" / f"step_{(epoch + 1) * steps_per_epoch:07d}.pt")
             save_atomic(resumable(policy, ema, opt, sched, epoch + 1, history, cfg, hparams, stats), last)
         barrier(ranks)  # the others wait while rank 0 validates and writes
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
             return {"interrupted_at": epoch + 1}
     if not ranks.main:
         return {}
-    save_atomic(inference_checkpoint(epochs), out / "model.pt")
-    if not (out / "best.pt").exists():  # no validation part: the last weights are the only choice
-        save_atomic(inference_checkpoint(epochs), out / "best.pt")
+    publish(inference_checkpoint(epochs), work, out)
     final = final_metrics(history, cfg, epochs, steps_per_epoch, len(train_names), len(val_names), ranks, device,
                           precision)
     write_json_atomic(out / "metrics.json", final)
@@ -392,20 +392,51 @@ def optimise_epoch(model: torch.nn.Module, policy: Policy, loader: object, opt: 
 
 
 def resume(last: Path, cfg: ModelConfig, hparams: dict, policy: Policy, ema: EMA, opt: torch.optim.Optimizer,
-           sched: object) -> tuple[list[dict], int]:
+           sched: object, replace_stale: bool = False) -> tuple[list[dict], int]:
     """(history, epochs done) from the checkpoint a killed run left, its state loaded into the model, EMA,
-    optimiser and schedule; ([], 0) without one. A checkpoint of other settings is one line."""
+    optimiser and schedule; ([], 0) without one. A checkpoint of other settings is one line, or (replace_stale)
+    removed with best.pt and checkpoints/ beside it."""
     if not last.exists():
         return [], 0
     ck = load_checkpoint(last)
+    if (ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams) and replace_stale:
+        print(f"{last}: a checkpoint of other settings; training from scratch", file=sys.stderr)
+        for name in ("last.pt", "best.pt"):
+            (last.parent / name).unlink(missing_ok=True)
+        shutil.rmtree(last.parent / "checkpoints", ignore_errors=True)
+        return [], 0
     if ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams:
         raise AdlError(f"{last}: checkpoint is from other settings; remove {last.parent} (or use --restart) to retrain")
+    print(f"{last}: resuming after epoch {int(ck['epoch'])}", file=sys.stderr)
     policy.load_state_dict(ck["model"])
     ema.model.load_state_dict(ck["ema"])
     ema.step = int(ck["ema_step"])
     opt.load_state_dict(ck["optimizer"])
     sched.load_state_dict(ck["scheduler"])
     return list(ck["history"]), int(ck["epoch"])
+
+
+def check_run(split: dict, split_path: Path, batch_size: int, ranks: Ranks) -> None:
+    if not split["train"]:
+        raise AdlError(f"{split_path}: the train split is empty")
+    if batch_size % ranks.world:
+        raise AdlError(f"--batch-size {batch_size}: the global batch must split evenly over {ranks.world} processes")
+
+
+def publish(final: dict, work: Path, out: Path) -> None:
+    """A finished run's model.pt (the final EMA weights) into out, and best.pt (the last weights without a
+    validation part). A run kept in a resume folder (a DVC stage's: DVC deletes a stage's outputs before it runs it
+    again, so its checkpoints live apart) moves best.pt and checkpoints/ into out and removes the folder."""
+    save_atomic(final, out / "model.pt")
+    if not (work / "best.pt").exists():
+        save_atomic(final, work / "best.pt")
+    if work == out:
+        return
+    os.replace(work / "best.pt", out / "best.pt")
+    if (work / "checkpoints").exists():
+        shutil.rmtree(out / "checkpoints", ignore_errors=True)
+        shutil.move(work / "checkpoints", out / "checkpoints")
+    shutil.rmtree(work)
 
 
 def final_metrics(history: list[dict], cfg: ModelConfig, epochs: int, steps_per_epoch: int, n_train: int, n_val: int,
@@ -463,6 +494,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--save-every", type=NON_NEGATIVE, default=0,
                    help="keep the EMA weights of every N epochs in <out>/checkpoints/ for learning curves "
                    "(benchmark --curve; default 0: none)")
+    p.add_argument("--resume-dir", type=Path,
+                   help="keep the checkpoints of the run in progress here (default: in --out); a finished run "
+                        "moves best.pt into --out and removes it. For DVC stages, whose outputs DVC deletes "
+                        "before it runs a stage again: a killed `dvc repro` then resumes where it stopped")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and train from scratch")
     p.add_argument("--no-augment", action="store_true",
                    help="train without random shifts and colour jitter (on by default; never at evaluation)")
@@ -547,15 +582,15 @@ def main(argv: list[str] | None = None) -> int:
         with exclusive(out) if ranks.main else contextlib.nullcontext():
             if args.restart and ranks.main:
                 for name in ("last.pt", "best.pt"):
-                    (out / name).unlink(missing_ok=True)
-                shutil.rmtree(out / "checkpoints", ignore_errors=True)
+                    ((args.resume_dir or out) / name).unlink(missing_ok=True)
+                shutil.rmtree((args.resume_dir or out) / "checkpoints", ignore_errors=True)
             barrier(ranks)  # no process reads a checkpoint that --restart is about to remove
             m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay,
                       args.warmup_steps, args.grad_clip, args.seed, args.log or out / "log.csv", progress=True,
                       val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment,
                       workers=args.workers, device=device, precision=args.precision, ranks=ranks,
                       windows_per_epoch=args.windows_per_epoch, save_every=args.save_every,
-                      open_files=args.open_files)
+                      open_files=args.open_files, resume_dir=args.resume_dir)
     if not ranks.main:
         return 0
     val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"

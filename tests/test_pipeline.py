@@ -8,12 +8,16 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from conftest import REPO, one_line_error, run_module
 
@@ -283,3 +287,69 @@ def test_closed_loop_replay_refuses_a_first_frame_model(pipeline: Path, tmp_path
     line = one_line_error(proc)
     assert "trained on first frames only" in line and "--closed-loop" in line
     assert not (tmp_path / "m.json").exists()
+
+
+def killed_repro(root: Path, stage: str, ready: Callable[[], bool], force: bool = True) -> bool:
+    """`dvc repro [-f] -s <stage>`, SIGKILLed with its children once ready() holds: whether it was still running."""
+    path = f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"
+    proc = subprocess.Popen([sys.executable, "-m", "dvc", "repro", *(["-f"] if force else []), "-s", stage], cwd=root,
+                            env={**os.environ, "DVC_NO_ANALYTICS": "1", "PATH": path}, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 600
+    while proc.poll() is None and not ready() and time.time() < deadline:
+        time.sleep(0.01)
+    running = proc.poll() is None
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    return running
+
+
+def journal_parts(path: Path) -> int:
+    return path.read_text().count("\n") - 1 if path.exists() else 0  # the first line is the fingerprint
+
+
+def test_a_killed_repro_resumes_without_redoing_finished_parts(pipeline: Path) -> None:
+    """R.6, last in this file (it retrains a model): killed in evaluate, replay or training, `dvc repro` goes on
+    where the stage stopped and ends with the figures of the uninterrupted run."""
+    metrics = pipeline / "metrics"
+    ev_before = json.loads((metrics / "eval_details.json").read_text())
+    ev_journal = metrics / ".eval_details.json.journal"
+    assert killed_repro(pipeline, "evaluate", lambda: journal_parts(ev_journal) >= 1)
+    assert not (metrics / "eval_details.json").exists()  # DVC removes a stage's outputs before it runs it
+    resumed = dvc(pipeline, "repro", "-s", "evaluate").stdout
+    assert "resuming: 1 model(s) evaluated before" in resumed or "resuming: 2 model(s)" in resumed, resumed
+    ev_after = json.loads((metrics / "eval_details.json").read_text())
+    for model, rows in ev_before["models"].items():
+        for key, row in rows["best"].items():  # the same errors; latencies are measured again for the rest
+            assert ev_after["models"][model]["best"][key]["px"] == row["px"], (model, key)
+    assert not ev_journal.exists()
+
+    rp_before = json.loads((metrics / "replay_details.json").read_text())
+    rp_journal = metrics / ".replay_details.json.journal"
+    assert killed_repro(pipeline, "replay", lambda: journal_parts(rp_journal) >= 2)
+    resumed = dvc(pipeline, "repro", "-s", "replay").stdout
+    assert "policies replayed before" in resumed, resumed
+    assert json.loads((metrics / "replay_details.json").read_text()) == rp_before
+    assert not rp_journal.exists()
+
+    # training: a run that never finished (more epochs), killed after a checkpoint, resumes from it
+    params = yaml.safe_load((pipeline / "params.yaml").read_text())
+    params["train"]["epochs"] = 4
+    (pipeline / "params.yaml").write_text(yaml.safe_dump(params))
+    model = pipeline / "models" / "fm_cnn" / "model.pt"
+    last = pipeline / ".resume" / "models" / "fm_cnn" / "last.pt"
+    assert killed_repro(pipeline, "train@fm_cnn", last.exists, force=False)
+    assert not model.exists() and last.exists()  # DVC removed the stage's outputs, not the run in progress
+    resumed = dvc(pipeline, "repro", "-s", "train@fm_cnn")
+    assert "last.pt: resuming after epoch" in resumed.stderr, resumed.stdout + resumed.stderr
+    assert not last.parent.exists()  # a finished run leaves nothing to resume
+    cmd = yaml.safe_load((pipeline / "dvc.lock").read_text())["stages"]["train@fm_cnn"]["cmd"]
+    cmd = cmd.replace("--out models/fm_cnn --resume-dir .resume/models/fm_cnn", "--out whole")
+    run_module("train", *cmd.split()[3:], "--log", "whole/log.csv", cwd=pipeline, check=True)  # uninterrupted
+    whole = torch.load(pipeline / "whole" / "model.pt", weights_only=True)["history"]
+    again = torch.load(model, weights_only=True)["history"]
+    assert [r["train_loss"] for r in again] == pytest.approx([r["train_loss"] for r in whole], rel=1e-4)
+    params["train"]["epochs"] = 2  # back to the fixture's run (restored from DVC's run cache)
+    (pipeline / "params.yaml").write_text(yaml.safe_dump(params))
+    dvc(pipeline, "repro")
+    shutil.rmtree(pipeline / "whole")

@@ -11,10 +11,13 @@ tool not held at its goal long enough), placed (the object not where it belongs)
 from __future__ import annotations
 
 import io
+from pathlib import Path
 
 import numpy as np
 
 from ..stats import rate_cell
+from .replay import failure_table
+from .tables import FIXED
 
 PARTS = ("force", "touches", "stroke", "dwell", "placed")
 PART_NAMES = {"force": "force > 20 N on the person", "touches": "grasp / contact missed", "stroke": "stroke short",
@@ -91,3 +94,50 @@ def outcome_text(details: dict, model: str, episode: str) -> str:
         force = f", peak force {d['peak_force_n']:.1f} N" if "peak_force_n" in d else ""
         lines.append(f"{label}: {what}{force}")
     return "\n".join(lines)
+
+
+def success_table(result: dict[str, dict], scenes: list, closed_loop: bool, checkpoint: str, where: str) -> str:
+    tasks = sorted({s.task for s in scenes})
+    per_task_n = {t: sum(s.task == t for s in scenes) for t in tasks}
+    lines = ["| policy | overall [95 %] | n | " + " | ".join(f"{t} (n = {per_task_n[t]})" for t in tasks) + " |",
+             "| --- | ---: | ---: |" + " ---: |" * len(tasks)]
+    for label, r in result.items():
+        cells = " | ".join(rate_cell(round(r["per_task"][t] * r["per_task_n"][t]), r["per_task_n"][t])
+                           if t in r["per_task"] else "-" for t in tasks)
+        lines.append(f"| {label} | {rate_cell(round(r['overall'] * r['n']), r['n'])} | {r['n']} | {cells} |")
+    mode = ("closed-loop (execute Ta of the predicted waypoints, then re-plan)" if closed_loop
+            else "open-loop")
+    return (f"# Success rate (%) of {mode} execution in MuJoCo, {where}, {checkpoint} checkpoints\n\n"
+            "Success: the task's predicate, with any contact force on the manikin above 20 N a failure. Overall: "
+            "the rate with Wilson's 95 % interval over n scenes; per task likewise over its n scenes (few: wide).\n\n"
+            + "\n".join(lines) + "\n")
+
+
+def failure_sections(closed_loop: bool, diagnostics: dict, per_episode: dict) -> str:
+    failures = failure_table(diagnostics, per_episode) if closed_loop else ""
+    outcome = breakdown_lines(diagnostics, per_episode)
+    if outcome:
+        failures = ("\n## How the policies fail, safety first\n\nPer policy: its failed episodes; those with a "
+                    "contact force on the person above 20 N (of all its episodes, Wilson's 95 % interval) and the "
+                    "peak force over all of them; the failures missing each other part of the predicate (an episode "
+                    "may miss several).\n\n" + "\n".join(outcome) + "\n" + failures)
+    return failures
+
+
+def failure_strips(folder: Path | None, scenes: list, trajs: dict, diagnostics: dict, per_episode: dict,
+                   strip: int) -> dict[Path, bytes]:
+    if folder is None:
+        return {}
+    strips: dict[Path, bytes] = {}
+    by_name = {s.name: (i, s) for i, s in enumerate(scenes)}
+    tasks_of = {s.name: s.task for s in scenes}
+    for label, diags in diagnostics.items():
+        if label.endswith(FIXED):
+            continue  # the same trajectories as the label's own strip, timed differently
+        picked = pick_failures(diags, per_episode[label], tasks_of, strip)
+        if picked:
+            traj = trajs[label.removesuffix(FIXED)]
+            strips[folder / f"{label.replace('/', '_')}.png"] = failure_strip(label, [
+                {"task": tasks_of[n], "rgb": by_name[n][1].rgb, "demo_px": by_name[n][1].traj2d,
+                 "pred_px": traj[by_name[n][0], :, :2], **diags[n]} for n in picked])
+    return strips
