@@ -28,7 +28,8 @@ from .dataset import doctor
 from .errors import AdlError, run_cli
 
 FLAG_KINDS = ("frozen camera", "frame gap", "tf glitch", "tf gap", "idle start", "idle end", "sync", "depth holes",
-              "outlier")
+              "joint spike", "joint flatline", "action frozen", "non-finite values", "gripper chatter",
+              "near duplicate", "outlier")
 
 
 def overview_png(figs: dict[str, dict], path: Path) -> bytes:

@@ -66,6 +66,10 @@ class Layout:
     tf_glitch_s: float | None = None  # the moving tf sample nearest this time is 0.5 m off (a tf glitch)
     idle_start_s: float = 0.0  # the arm holds still this long before it moves (an operator who paused)
     zero_image_stamps: bool = False  # the camera's header.stamp is 0 (a driver that never sets it); log times right
+    joint_spike_s: float | None = None  # joint_3's sample nearest this time is 1 rad off (an encoder glitch)
+    joint_nan_s: float | None = None  # joint_3's sample nearest this time is NaN (a driver's lost reading)
+    joint_stuck: tuple[float, float] | None = None  # joint_3 repeats its value from t0 to t1 s (a stuck sensor)
+    clock_offset_s: float = 0.0  # every stamp later by this (the same demonstration saved again later)
 
 
 # A wrist camera as labs mount one: fixed to the arm's last moving link by /tf_static, its own topics and size.
@@ -113,7 +117,7 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
     cam, robot = CAMERAS[lay.camera], ROBOTS[lay.robot]
     w = BagWriter(path, lay.fmt)
     f = w.msgs
-    t0 = 1_767_225_600 * 10**9
+    t0 = 1_767_225_600 * 10**9 + int(lay.clock_offset_s * 1e9)
     ns = lambda t: t0 + int(round(t * 1e9))  # noqa: E731
     width, height = lay.size
     K = np.array([[50.0, 0, (width - 1) / 2], [0, 50.0, (height - 1) / 2], [0, 0, 1]])
@@ -190,6 +194,12 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
         for k in range(int(round(total * 100)) + 1):
             tn = ns(k / 100)
             q = np.sin(np.arange(7) + k / 100)
+            if lay.joint_stuck and lay.joint_stuck[0] <= k / 100 <= lay.joint_stuck[1]:
+                q[2] = np.sin(2 + lay.joint_stuck[0])
+            if k == round((lay.joint_spike_s or -1) * 100):
+                q[2] += 1.0
+            if k == round((lay.joint_nan_s or -1) * 100):
+                q[2] = np.nan
             events.append((tn, 5, robot["joints"], M.JOINT_STATE,
                            lambda tn=tn, q=q: f.joint_state(tn, names, q, np.zeros(7))))
     events.sort(key=lambda e: (e[0], e[1]))

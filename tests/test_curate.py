@@ -21,9 +21,14 @@ from adlpipe.ingest import ingest
 
 CASES = {  # a clean episode, and one of each problem doctor must flag, in the three bag formats
     "clean": (Layout(fmt="mcap"), "c.mcap"),
-    "frozen": (Layout(fmt="bag", frozen=(8, 16)), "f.bag"),
+    "frozen": (Layout(fmt="bag", frozen=(8, 16), duration_s=3.4), "f.bag"),
     "glitch": (Layout(fmt="db3", tf_glitch_s=1.5), "g"),
     "idle": (Layout(fmt="mcap", idle_start_s=2.0), "i.mcap"),
+    # the same motion as the clean one, a little longer each, so none of them repeats another recording
+    "spike": (Layout(fmt="mcap", joint_spike_s=1.2, duration_s=3.1), "s.mcap"),
+    "nan": (Layout(fmt="mcap", joint_nan_s=1.3, duration_s=3.2), "n.mcap"),
+    "stuck": (Layout(fmt="mcap", joint_stuck=(0.5, 2.0), duration_s=3.3), "k.mcap"),
+    "copy": (Layout(fmt="mcap", clock_offset_s=3600.0), "d.mcap"),  # the clean one saved again an hour later
 }
 
 
@@ -38,7 +43,7 @@ def curated(tmp_path_factory: pytest.TempPathFactory) -> dict:
     cfg = root / "map.yaml"
     cfg.write_text(yaml.safe_dump(topic_map(Layout())))
     data = root / "x.h5"
-    assert ingest(list(bags.values()), data, TopicMap.load(cfg), size=48)["new"] == 4
+    assert ingest(list(bags.values()), data, TopicMap.load(cfg), size=48)["new"] == len(CASES)
     with h5py.File(data) as f:
         name_of = {case: next(n for n in schema.episode_names(f)
                               if Path(str(f["episodes"][n].attrs["source_path"])) == bags[case].resolve())
@@ -52,7 +57,11 @@ def curated(tmp_path_factory: pytest.TempPathFactory) -> dict:
 def test_doctor_flags_each_problem_and_not_the_clean_episode(curated: dict) -> None:
     rep, name = curated["report"], curated["name"]
     kinds = {case: sorted({fl.split(":")[0] for fl in rep[name[case]]["flags"]}) for case in CASES}
-    assert kinds == {"clean": [], "frozen": ["frozen camera"], "glitch": ["tf glitch"], "idle": ["idle start"]}
+    # (with 8 episodes of the task, the glitch's peak speed and the idle one's duration are outliers too)
+    assert kinds == {"clean": [], "frozen": ["frozen camera"], "glitch": ["outlier", "tf glitch"],
+                     "idle": ["idle start", "outlier"],
+                     "spike": ["joint spike"], "nan": ["non-finite values"], "stuck": ["joint flatline"],
+                     "copy": ["near duplicate"]}
     clean, frozen, glitch, idle = (rep[name[c]] for c in ("clean", "frozen", "glitch", "idle"))
     assert abs(clean["fps"] - 10.0) < 0.01 and clean["repeated_frames"] == 0 and clean["max_frame_gap_s"] < 0.11
     ee_t, ee_p = curated["truth"]["clean"]  # the path length the tf really traced
@@ -64,7 +73,16 @@ def test_doctor_flags_each_problem_and_not_the_clean_episode(curated: dict) -> N
     assert frozen["repeated_frames"] == 8 and frozen["frozen_run"] == 9 and frozen["frozen_at_s"] == pytest.approx(0.8)
     assert glitch["peak_speed_mps"] > 20 and abs(glitch["peak_speed_at_s"] - 1.5) < 0.03
     assert idle["idle_start_s"] == pytest.approx(2.0, abs=0.05) and clean["idle_start_s"] < 0.05
-    assert "| wipe the table | 4 | 3 |" in curated["stdout"]
+    spike, nan, stuck = (rep[name[c]] for c in ("spike", "nan", "stuck"))
+    assert spike["joint_spike_joint"] == "joint_3" and spike["joint_spike"] == pytest.approx(1.0, abs=0.02)
+    assert spike["joint_spike_at_s"] == pytest.approx(1.2, abs=0.01) and clean["joint_spike_share"] < 0.01
+    assert nan["non_finite"] == [f"left out 1 of {round(nan['duration_s'] * 100) + 1} joint states on "
+                                 "/my_gen3/joint_states with non-finite values (the first at 1.30 s, in joint_3)"]
+    assert stuck["joint_flat_joint"] == "joint_3" and stuck["joint_flat_s"] == pytest.approx(1.5, abs=0.011)
+    assert stuck["joint_flat_moved_m"] > 0.05 and clean["joint_flat_s"] == 0.0
+    assert rep[name["copy"]]["flags"] == [f"near duplicate: of {name['clean']} (recorded before it): as many "
+                                          "frames, the end effector 0.0 um from it (RMS; limit 20 um)"]
+    assert f"| wipe the table | {len(CASES)} | {len(CASES) - 1} |" in curated["stdout"]
     png = (curated["root"] / "doctor.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -84,7 +102,7 @@ def test_outliers_are_robust_z_scores_within_a_task() -> None:
 def test_verify_finds_nothing_on_a_faithful_dataset_and_each_changed_array(curated: dict, tmp_path: Path) -> None:
     bags = [str(b) for b in curated["bags"].values()]
     proc = run_module("doctor", curated["data"], "--verify", *bags, check=True)
-    assert "4 episode(s) verified against their bags, 0 mismatch(es)" in proc.stdout
+    assert f"{len(CASES)} episode(s) verified against their bags, 0 mismatch(es)" in proc.stdout
     copy = tmp_path / "copy"
     shutil.copytree(curated["root"], copy, ignore=shutil.ignore_patterns("*.mcap", "*.bag", "*.db3"))
     name = curated["name"]["clean"]
@@ -122,7 +140,7 @@ def test_edits_share_the_files_leave_the_old_dataset_and_refuse_an_old_split(cur
     with schema.open_dataset(retasked) as f:
         names = schema.episode_names(f)
         new_name = next(n for n in names if n.startswith("pass_the_cup-"))
-        assert len(names) == 3 and f["episodes"][new_name].attrs["task"] == "pass the cup"
+        assert len(names) == len(CASES) - 1 and f["episodes"][new_name].attrs["task"] == "pass the cup"
         assert {r["name"]: r["task"] for r in schema.read_catalog(f)}[new_name] == "pass the cup"
         assert np.array_equal(f["episodes"][new_name]["frames/rgb"][()],
                               h5py.File(data)["episodes"][name["idle"]]["frames/rgb"][()])
@@ -147,7 +165,7 @@ def test_a_merge_adds_the_other_datasets_episodes_once(curated: dict, tmp_path: 
     assert "1 episode(s) already in" in proc.stderr
     with schema.open_dataset(merged) as f:
         tasks = sorted(str(f["episodes"][n].attrs["task"]) for n in schema.episode_names(f))
-    assert tasks == ["pass the cup"] + ["wipe the table"] * 4
+    assert tasks == ["pass the cup"] + ["wipe the table"] * len(CASES)
 
 
 @pytest.mark.parametrize(("args", "needle"), [

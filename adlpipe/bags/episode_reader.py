@@ -80,14 +80,17 @@ class Series:
     names: list[str] = field(default_factory=list)
     t: list[float] = field(default_factory=list)
     rows: list[np.ndarray] = field(default_factory=list)
+    non_finite: list[tuple[float, str]] = field(default_factory=list)  # (stamp, first such name) of dropped rows
 
     def add(self, msg: object, where: str) -> None:
         if not self.names:
             self.names = [check_name(str(n), "joint", where) for n in msg.name]
         pos = np.asarray(msg.position, float)
-        if len(pos) != len(self.names) or not np.isfinite(pos).all():
-            raise AdlError(f"{where}: field position has {len(pos)} values for {len(self.names)} names "
-                           "or is not finite")
+        if len(pos) != len(self.names):
+            raise AdlError(f"{where}: field position has {len(pos)} values for {len(self.names)} names")
+        if not np.isfinite(pos).all():  # a sensor's NaN: the message is left out, and the episode says so
+            self.non_finite.append((stamp_s(msg), self.names[int(np.flatnonzero(~np.isfinite(pos))[0])]))
+            return
         self.t.append(stamp_s(msg))
         self.rows.append(pos)
 

@@ -8,6 +8,7 @@ is a few numbers.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 
 import h5py
@@ -15,6 +16,7 @@ import numpy as np
 from scipy.stats import median_abs_deviation
 
 from . import schema
+from .doctor_signals import action_figures, chatter, joint_figures, near_duplicates, non_finite_notes, signature
 from .frames import nearest_index
 
 RESAMPLE_HZ = 50.0  # the end-effector path is resampled at this rate for speed, jerk and idle time
@@ -37,6 +39,14 @@ class Limits:
     z: float = 3.5  # robust z-score (median and scaled MAD within the task) beyond which a figure is an outlier
     outlier_share: float = 0.25  # ... and it must also lie this share of the median away (a task whose episodes
     #                              are nearly alike has a tiny MAD: 0.57 against 0.56 m/s is not a problem)
+    joint_spike: float = 0.5  # a joint value this share of the joint's range off the median of it and its neighbours
+    flatline_s: float = 1.0  # an arm joint (or the action stream) repeating one value this long ...
+    flatline_moved_m: float = 0.05  # ... while the end effector moves this far: a stuck sensor or a stale command
+    chatter: int = 4  # this many gripper crossings (open or close) within chatter_s: chatter
+    chatter_s: float = 1.0
+    duplicate_m: float = 2e-5  # as many frames as an earlier recording, the end effector within this of it (RMS)
+    duplicate_image: float = 0.01  # and the first frame within this mean grey level (0-1): the same demonstration
+    #                                saved twice (two recordings differ by 0.1 mm or more)
 
 
 def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
@@ -54,6 +64,10 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
     fig.update(_motion(g["series/ee_t"][()], g["series/ee_pos"][()], duration, limits))
     crossings = gripper_crossings(fr["gripper"][()])
     fig["gripper_events"] = None if crossings is None else len(crossings)
+    fig["gripper_chatter"] = chatter(t, crossings, limits.chatter_s)
+    fig.update(joint_figures(g, json.loads(g.attrs.get("topic_map", "{}") or "{}").get("gripper_joint")))
+    fig.update(action_figures(g))
+    fig["non_finite"] = non_finite_notes(g)
     fig["depth_holes"] = _depth_holes(fr)
     fig["bridged_tf_gap"] = "bridged" in str(g.attrs.get("note", ""))
     fig["flags"] = flags(fig, float(fr.attrs.get("sync_tolerance_s", 0.05)), limits)
@@ -188,6 +202,28 @@ def flags(fig: dict, tolerance: float, limits: Limits) -> list[str]:
     if fig["depth_holes"] is not None and fig["depth_holes"] > limits.depth_holes:
         out.append(f"depth holes: {fig['depth_holes']:.0%} of depth pixels have no return (limit "
                    f"{limits.depth_holes:.0%})")
+    return out + signal_flags(fig, limits)
+
+
+def signal_flags(fig: dict, limits: Limits) -> list[str]:
+    """The flags of the joints, the action stream and the gripper (doctor_signals)."""
+    out = [f"non-finite values: {note}" for note in fig["non_finite"]]
+    if fig["joint_spike_share"] > limits.joint_spike:
+        out.append(f"joint spike: {fig['joint_spike_joint']} is {fig['joint_spike']:.3g} "
+                   f"({fig['joint_spike_share']:.0%} of its range) off its neighbours at "
+                   f"{fig['joint_spike_at_s']:.2f} s (limit {limits.joint_spike:.0%})")
+    if fig["joint_flat_s"] > limits.flatline_s and fig["joint_flat_moved_m"] > limits.flatline_moved_m:
+        out.append(f"joint flatline: {fig['joint_flat_joint']} repeats one value for {fig['joint_flat_s']:.1f} s while "
+                   f"the end effector moves {fig['joint_flat_moved_m']:.2f} m (limits {limits.flatline_s} s, "
+                   f"{limits.flatline_moved_m} m)")
+    frozen = fig["action_frozen_s"]
+    if frozen is not None and frozen > limits.flatline_s and fig["action_frozen_moved_m"] > limits.flatline_moved_m:
+        out.append(f"action frozen: the action stream repeats one value for {frozen:.1f} s from "
+                   f"{fig['action_frozen_at_s']:.2f} s while the end effector moves {fig['action_frozen_moved_m']:.2f}"
+                   f" m (limits {limits.flatline_s} s, {limits.flatline_moved_m} m)")
+    if fig["gripper_chatter"] >= limits.chatter:
+        out.append(f"gripper chatter: {fig['gripper_chatter']} opening or closing crossings within "
+                   f"{limits.chatter_s} s (limit {limits.chatter})")
     return out
 
 
@@ -213,13 +249,35 @@ def outlier_flags(figs: dict[str, dict], limits: Limits = Limits()) -> None:
                                             f"{z:+.1f}, limit {limits.z}, {len(names)} episodes)")
 
 
+def duplicate_flags(figs: dict[str, dict], signatures: dict[str, np.ndarray], stamps: dict[str, int],
+                    limits: Limits) -> None:
+    """Flag each episode that nearly repeats an earlier recording of its task (doctor_signals.near_duplicates)."""
+    by_task: dict[str, list[str]] = {}
+    for name, f in figs.items():
+        by_task.setdefault(f["task"], []).append(name)
+    for names in by_task.values():
+        if len(names) < 2:
+            continue
+        found = near_duplicates(names, np.stack([signatures[n] for n in names]), [stamps[n] for n in names],
+                                limits.duplicate_m, limits.duplicate_image)
+        for name, (other, rms) in found.items():
+            figs[name]["flags"].append(f"near duplicate: of {other} (recorded before it): as many frames, the end "
+                                       f"effector {1e6 * rms:.1f} um from it (RMS; limit {1e6 * limits.duplicate_m:.0f}"
+                                       " um)")
+
+
 def examine(path: str, names: list[str] | None = None, limits: Limits = Limits()) -> dict[str, dict]:
     """Figures and flags of every named episode (all if None) of a dataset, an episode at a time."""
     figs: dict[str, dict] = {}
+    signatures: dict[str, np.ndarray] = {}  # a few hundred numbers per episode
+    stamps: dict[str, int] = {}
     with schema.open_dataset(path, names) as f:
         for n in names if names is not None else schema.episode_names(f):
-            figs[n] = episode_figures(f[schema.EPISODES][n], limits)
+            g = f[schema.EPISODES][n]
+            figs[n] = episode_figures(g, limits)
+            signatures[n], stamps[n] = signature(g), int(g.attrs.get("stamp0_ns", 0))
     outlier_flags(figs, limits)
+    duplicate_flags(figs, signatures, stamps, limits)
     return figs
 
 

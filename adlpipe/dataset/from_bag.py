@@ -47,6 +47,13 @@ def _field(msg: object, *names: str) -> object:
     raise AttributeError(names[0])
 
 
+NON_FINITE = "non-finite values"  # what the doctor looks for in an episode's note
+
+
+def non_finite_note(dropped: int, of: int, what: str, t: float, name: str) -> str:
+    return f"left out {dropped} of {of} {what} with {NON_FINITE} (the first at {t:.2f} s, in {name})"
+
+
 def recovery_note(src: BagSource, read: dict[str, int]) -> str:
     """How much of a truncated MCAP was lost, on the topics the ingest uses."""
     meta = src.declared_in_metadata()
@@ -104,10 +111,19 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     cameras = [other_camera(r, tm, c, size, traj3d) for c in tm.extra_cameras]
     names, poses = object_poses(r, tm, camera_frame, [c.camera_frame for c in cameras])
     n_joints = len(r.joint_names) if r.joint_t else 0
-    if n_joints and not np.isfinite(np.asarray(r.joint_pos, float)).all():
-        raise AdlError(f"{bag}: non-finite joint positions on {tm.joints}")
     joint_t = np.asarray(r.joint_t, float) - r.t_img
     joint_pos = np.asarray(r.joint_pos, float).reshape(len(r.joint_t), n_joints)
+    finite = np.isfinite(joint_pos).all(1)
+    if not finite.all():  # a sensor's NaN: those joint states are left out, and the episode says so
+        k = int(np.flatnonzero(~finite)[0])
+        notes.append(non_finite_note(int((~finite).sum()), len(finite), f"joint states on {tm.joints}",
+                                     joint_t[k], r.joint_names[int(np.flatnonzero(~np.isfinite(joint_pos[k]))[0])]))
+        joint_t, joint_pos = joint_t[finite], joint_pos[finite]
+    for key, series in r.series.items():
+        if series.non_finite:
+            t, name = series.non_finite[0]
+            notes.append(non_finite_note(len(series.non_finite), len(series.non_finite) + len(series.t),
+                                         f"{key} messages on {getattr(tm, key)}", t - r.t_img, name))
     if frames is not None:
         gripper = r.joint_names.index(tm.gripper_joint) if tm.gripper_joint in r.joint_names[:n_joints] else None
         frames.finish(r.t_img, t_end, tm.sync_tolerance_s, ee_t, ee_p, joint_t, joint_pos, gripper,
