@@ -24,8 +24,10 @@ from .errors import AdlError, run_cli
 from .lock import exclusive
 
 
-def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progress: bool = False) -> dict:
-    """Write the LeRobot v3 export of `names` (default: every episode) to `out`; returns its info.json."""
+def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progress: bool = False,
+                   video: bool = True, maps: bool = True) -> dict:
+    """Write the LeRobot v3 export of `names` (default: every episode) to `out`, its cameras as MP4 video (or PNG
+    images); returns its info.json."""
     if out.exists():
         raise AdlError(f"{out}: already exists; export into a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -34,10 +36,11 @@ def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progre
     with exclusive(out):  # a second export into the same OUT stops at once instead of deleting this one's work
         if out.exists():
             raise AdlError(f"{out}: already exists; export into a new folder")
-        return _export_locked(data, out, names, progress)
+        return _export_locked(data, out, names, progress, video, maps)
 
 
-def _export_locked(data: Path, out: Path, names: list[str] | None, progress: bool) -> dict:
+def _export_locked(data: Path, out: Path, names: list[str] | None, progress: bool, video: bool,
+                   maps: bool) -> dict:
     tmp = out.with_name(f".{out.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
@@ -45,7 +48,7 @@ def _export_locked(data: Path, out: Path, names: list[str] | None, progress: boo
             names = names or schema.episode_names(f)
             if not names:
                 raise AdlError(f"{data}: no episodes to export")
-            layout = plan(f, names)
+            layout = plan(f, names, video, maps)
             tasks = sorted({str(f[schema.EPISODES][n].attrs["task"]) for n in names})
             export = Export(tmp, layout, tasks)
             for i, n in enumerate(tqdm(names, desc="export", unit="episode", file=sys.stderr,
@@ -66,6 +69,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", nargs="+", help="episode names to export (default: all)")
     p.add_argument("--split", type=Path, help="split JSON for --split-part (default: split.json beside the data)")
     p.add_argument("--split-part", choices=["train", "test"], help="export only this part of the split")
+    p.add_argument("--images", choices=["video", "png"], default="video",
+                   help="the cameras as MP4 video, as LeRobot records them (default), or as lossless PNG images "
+                        "in the data files; depth and affordance maps are always PNG")
+    p.add_argument("--maps", choices=["png", "none"], default="png",
+                   help="the depth and affordance maps: lossless PNG images in the data files (default), or left "
+                        "out (for readers that take no image features, such as kalanos 0.8.2)")
     p.add_argument("--skip-bad", action="store_true",
                    help="leave out episodes whose files cannot be read (each named) instead of stopping")
     args = p.parse_args(argv)
@@ -80,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"adlpipe.export: skipped bad episode: {line}", file=sys.stderr)
         if not names:
             raise AdlError(f"{args.data}: no readable episodes to export")
-    info = export_lerobot(args.data, args.out, names, progress=True)
+    info = export_lerobot(args.data, args.out, names, progress=True, video=args.images == "video",
+                          maps=args.maps == "png")
     print(f"{args.out}: LeRobotDataset {info['codebase_version']}, {info['total_episodes']} episode(s), "
           f"{info['total_frames']} frames at {info['fps']} fps, {info['total_tasks']} task(s)")
     return 0

@@ -21,6 +21,13 @@ import sys
 from pathlib import Path
 
 EXPECTED = "adlpipe_expected.json"
+THUMBS = "adlpipe_expected_frames.npy"  # every frame of the source, 16 x 16 (area means), uint8 RGB
+TOLERANCE = 4.0  # grey levels: the mean absolute difference H.264 (CRF 15, yuv420p) may leave
+
+
+def thumbnails(frames):  # noqa: ANN001, ANN201 - (T, S, S, 3) uint8 -> (T, 16, 16, 3) float
+    t, s = frames.shape[0], frames.shape[1]
+    return frames.reshape(t, 16, s // 16, 16, s // 16, 3).mean((2, 4))
 
 
 def expect(data: Path, out: Path) -> None:
@@ -29,7 +36,7 @@ def expect(data: Path, out: Path) -> None:
     from adlpipe.dataset import schema
     from adlpipe.export import export_lerobot
 
-    export_lerobot(data, out)
+    export_lerobot(data, out)  # the cameras as video
     with schema.open_dataset(data) as f:
         names = schema.episode_names(f)
         eps = [f[schema.EPISODES][n] for n in names]
@@ -43,6 +50,7 @@ def expect(data: Path, out: Path) -> None:
         if "depth_index" in fr and fr["depth_index"][0] >= 0:  # the first frame's depth, millimetres
             d = fr["depth"][int(fr["depth_index"][0])].astype(np.int64)
             want["depth0_sum_max"] = [int(d.sum()), int(d.max())]
+        np.save(out / THUMBS, np.concatenate([thumbnails(g["frames/rgb"][()]) for g in eps]))
     (out / EXPECTED).write_text(json.dumps(want))
     print(f"exported {len(names)} episodes, {sum(want['lengths'])} frames to {out}")
 
@@ -69,6 +77,12 @@ def check(root: Path) -> int:
         "state max": (np.allclose(stats["max"], want["state_max"], rtol=1e-5, equal_nan=True), True),
         "state mean": (np.allclose(stats["mean"], want["state_mean"], rtol=1e-4, atol=1e-6, equal_nan=True), True),
     }
+    # every frame decoded from the video by LeRobot's own decoder, against the source frame
+    thumbs = np.load(root / THUMBS)
+    worst = max(float(np.abs(thumbnails(ds[i]["observation.images.rgb"].permute(1, 2, 0).numpy()[None] * 255.0)
+                             - thumbs[i]).mean()) for i in range(len(ds)))
+    checks[f"every frame within {TOLERANCE} grey levels (mean, 16 x 16 areas)"] = (worst < TOLERANCE, True)
+    print(f"    the worst frame differs by {worst:.2f} grey levels")
     if "depth0_sum_max" in want:  # LeRobot 0.4.4 reads 16-bit PNG as int16: exact below 32.767 m
         d = item["observation.images.depth"].long()
         checks["depth of the first frame (mm: sum, max)"] = ([int(d.sum()), int(d.max())], want["depth0_sum_max"])

@@ -1,5 +1,6 @@
-"""The LeRobot v3 export, read back with pyarrow against the source dataset and the v3 layout (LeRobot itself does
-not install beside torch 2.13: bench/lerobot_check.py loads the export with LeRobotDataset in its own venv)."""
+"""The LeRobot v3 export, read back with pyarrow and PyAV against the source dataset and the v3 layout (LeRobot
+itself does not install beside torch 2.13: bench/lerobot_check.py loads the export with LeRobotDataset in its own
+venv). Its cameras as video (the default) and as PNG images."""
 
 from __future__ import annotations
 
@@ -18,8 +19,49 @@ from adlpipe.export import export_lerobot
 @pytest.fixture(scope="module")
 def exported(ingested: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("lerobot") / "adl"
-    export_lerobot(ingested, out)
+    export_lerobot(ingested, out, video=False)
     return out
+
+
+def test_the_cameras_are_video_as_lerobot_records_them(ingested: Path, tmp_path: Path) -> None:
+    import av
+
+    out = tmp_path / "adl"
+    export_lerobot(ingested, out)
+    info = json.loads((out / "meta" / "info.json").read_text())
+    feat = info["features"]["observation.images.rgb"]
+    assert feat["dtype"] == "video" and feat["info"]["video.codec"] == "h264" and feat["info"]["video.fps"] == 5
+    assert info["video_path"] == "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+    data = pq.read_table(out / "data" / "chunk-000" / "file-000.parquet")
+    assert "observation.images.rgb" not in data.column_names  # the frames live in the video
+    assert "observation.images.depth" in data.column_names  # depth stays lossless PNG
+    eps = pq.read_table(out / "meta" / "episodes" / "chunk-000" / "file-000.parquet").to_pylist()
+    with av.open(str(out / "videos" / "observation.images.rgb" / "chunk-000" / "file-000.mp4")) as c:
+        decoded = [(float(fr.pts * fr.time_base), fr.to_ndarray(format="rgb24")) for fr in c.decode(video=0)]
+    assert len(decoded) == info["total_frames"]
+    stamps = np.array([t for t, _ in decoded])
+    ts = data.column("timestamp").to_numpy().astype(np.float64)
+    errors = []
+    with schema.open_dataset(ingested) as f:
+        for ep in eps:
+            g = f[schema.EPISODES][ep["adlpipe/name"]]
+            rgb = g["frames/rgb"][()]
+            for k, t in enumerate(ts[ep["dataset_from_index"]:ep["dataset_to_index"]]):
+                # where LeRobot's decoder looks for the frame: the episode's offset in the file plus its timestamp
+                j = int(np.abs(stamps - (ep["videos/observation.images.rgb/from_timestamp"] + t)).argmin())
+                assert abs(stamps[j] - ep["videos/observation.images.rgb/from_timestamp"] - t) < 1e-4
+                errors.append(np.abs(decoded[j][1].astype(float) - rgb[k]).mean())
+            lo, hi = ep["dataset_from_index"], ep["dataset_to_index"]
+            cam_t = data.column("observation.camera_timestamp").to_numpy()[lo:hi]
+            assert cam_t == pytest.approx(g["frames/t"][()], abs=1e-6)  # the camera's stamps kept beside LeRobot's
+            K = g["K"][()]
+            assert ep["adlpipe/camera/K"] == pytest.approx(K.ravel().tolist())
+    assert max(errors) < 4.0  # grey levels: H.264 at CRF 15, yuv420p
+    cal = info["calibration"]["camera"]
+    assert cal["intrinsics"]["fx"] > 0 and len(cal["extrinsics"]) == 16 and cal["extrinsics_frames"]["parent"]
+    card = (out / "README.md").read_text()
+    assert card.startswith("---\nlicense: other\ntask_categories:\n- robotics\ntags:\n- LeRobot")
+    assert '"codebase_version": "v3.0"' in card
 
 
 def source(ingested: Path) -> list[dict]:

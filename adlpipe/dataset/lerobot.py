@@ -8,14 +8,24 @@
                                                     stats/<feature>/<stat>
     data/chunk-{c:03d}/file-{f:03d}.parquet         one row per frame; a new file past data_files_size_in_mb
 
-Per frame: observation.images.rgb (PNG; in a dataset of several cameras, observation.images.<name> for each camera
-instead: the other cameras' frames nearest each frame of the first one, black where none), observation.images.depth
+    videos/<key>/chunk-000/file-{f:03d}.mp4         the cameras as LeRobot records them (lerobot_video.py); with
+                                                    images="png" they are PNG in the data files instead
+    meta/info.json "calibration"                    per camera, of the first episode: intrinsics (fx, fy, cx, cy,
+                                                    distortion model and coefficients), extrinsics (T_base_camera,
+                                                    row-major) and their frames; "adlpipe": the topic map
+    README.md                                       the dataset card, as LeRobot writes one
+
+Per frame: observation.images.rgb (video, or PNG; in a dataset of several cameras, observation.images.<name> for
+each camera instead: the other cameras' frames nearest each frame of the first one, black where none),
+observation.images.depth
 (16-bit PNG, millimetres, 0 = no return; when the dataset has depth), observation.images.affordance (8-bit PNG of
 the map; when it has maps), observation.state (end effector x, y, z in the base frame, the joints, the gripper; NaN
 where a bag had no sample near the frame), action (the end effector's position at the next frame; the last frame
-repeats its own), timestamp (the camera stamp from the episode's first frame), frame_index, episode_index, index,
-task_index. Images are stored in the parquet files as Hugging Face `datasets` Image structs ({bytes, path}), as
-LeRobot does for image features.
+repeats its own), observation.camera_timestamp (the camera's stamp, s from the episode's first frame: jitter and
+dropped stretches show here), timestamp (frame_index / fps, LeRobot's convention), frame_index, episode_index, index,
+task_index. PNG images are stored in the parquet files as Hugging Face `datasets` Image structs ({bytes, path}),
+as LeRobot does for image features; depth and affordance maps always are (lossless). Per episode, beside LeRobot's
+columns: adlpipe/name, and adlpipe/<camera>/K and adlpipe/<camera>/T_base_camera (its calibration, row-major).
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ import pyarrow.parquet as pq
 
 from ..errors import AdlError
 from . import schema
+from .lerobot_video import VIDEO_FILE_MB, VIDEO_PATH, VideoFiles, video_feature
 
 CODEBASE_VERSION = "v3.0"
 CHUNKS_SIZE = 1000  # files per chunk folder
@@ -41,6 +52,7 @@ DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 EPISODES_PATH = "meta/episodes/chunk-000/file-000.parquet"
 RGB, DEPTH, AFFORDANCE = "observation.images.rgb", "observation.images.depth", "observation.images.affordance"
 STATE, ACTION = "observation.state", "action"
+CAMERA_TIMESTAMP = "observation.camera_timestamp"  # the camera's stamp (timestamp is frame_index / fps, LeRobot's)
 IMAGE_STRUCT = pa.struct([("bytes", pa.binary()), ("path", pa.string())])
 
 
@@ -102,14 +114,15 @@ class Layout:
     affordance: bool
     fps: int
     cameras: list[str] = field(default_factory=list)  # every camera's name when there are several, else empty
+    video: bool = True  # the cameras as MP4 video (LeRobot's own form), else PNG in the data files
 
     def image_key(self, camera: str) -> str:
         return f"observation.images.{camera}" if self.cameras else RGB
 
     def features(self) -> dict[str, dict]:
         img = {"dtype": "image", "names": ["height", "width", "channels"]}
-        f: dict[str, dict] = {self.image_key(c): {**img, "shape": [self.size, self.size, 3]}
-                              for c in self.cameras or ["rgb"]}
+        camera = video_feature(self.size, self.fps) if self.video else {**img, "shape": [self.size, self.size, 3]}
+        f: dict[str, dict] = {self.image_key(c): camera for c in self.cameras or ["rgb"]}
         if self.depth:
             f[DEPTH] = {**img, "shape": [self.size, self.size, 1], "info": {"is_depth_map": True, "unit": "mm"}}
         if self.affordance:
@@ -117,16 +130,21 @@ class Layout:
         state = ["ee_x", "ee_y", "ee_z", *self.joint_names, "gripper"]
         f[STATE] = {"dtype": "float32", "shape": [len(state)], "names": state}
         f[ACTION] = {"dtype": "float32", "shape": [3], "names": ["ee_x", "ee_y", "ee_z"]}
+        f[CAMERA_TIMESTAMP] = {"dtype": "float32", "shape": [1], "names": None}
         for key, dtype in (("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"),
                            ("index", "int64"), ("task_index", "int64")):
             f[key] = {"dtype": dtype, "shape": [1], "names": None}
         return f
 
+    def video_keys(self) -> list[str]:
+        return [k for k, v in self.features().items() if v["dtype"] == "video"]
+
     def schema(self) -> pa.Schema:
-        feats = self.features()
+        feats = {k: v for k, v in self.features().items() if v["dtype"] != "video"}  # videos live in videos/
         fields = [pa.field(k, IMAGE_STRUCT) for k, v in feats.items() if v["dtype"] == "image"]
         fields += [pa.field(STATE, pa.list_(pa.float32(), len(feats[STATE]["names"]))),
-                   pa.field(ACTION, pa.list_(pa.float32(), 3)), pa.field("timestamp", pa.float32())]
+                   pa.field(ACTION, pa.list_(pa.float32(), 3)), pa.field(CAMERA_TIMESTAMP, pa.float32()),
+                   pa.field("timestamp", pa.float32())]
         fields += [pa.field(k, pa.int64()) for k in ("frame_index", "episode_index", "index", "task_index")]
         hf = {"info": {"features": {k: ({"_type": "Image"} if v["dtype"] == "image" else
                                         {"feature": {"dtype": "float32", "_type": "Value"}, "length": v["shape"][0],
@@ -135,7 +153,7 @@ class Layout:
         return pa.schema(fields, metadata={"huggingface": json.dumps(hf)})
 
 
-def plan(f: h5py.File, names: list[str]) -> Layout:
+def plan(f: h5py.File, names: list[str], video: bool = True, maps: bool = True) -> Layout:
     """Decide the features from the episodes' small arrays; every episode must have the same joints."""
     joints: list[str] | None = None
     cameras: list[str] | None = None
@@ -163,7 +181,7 @@ def plan(f: h5py.File, names: list[str]) -> Layout:
             rates.append(1.0 / float(np.median(np.diff(t))))
     fps = max(1, int(round(float(np.median(rates))))) if rates else 1
     several = cameras if cameras and len(cameras) > 1 else []
-    return Layout(int(f.attrs["image_size"]), joints or [], depth, affordance, fps, several)
+    return Layout(int(f.attrs["image_size"]), joints or [], depth and maps, affordance and maps, fps, several, video)
 
 
 class Export:
@@ -178,6 +196,9 @@ class Export:
         self.writer: pq.ParquetWriter | None = None
         self.episodes: list[dict] = []
         self.totals: dict[str, Moments] = {}
+        self.videos = {k: VideoFiles(root, k, layout.size, layout.fps) for k in layout.video_keys()}
+        self.calibration: dict[str, dict] = {}
+        self.topic_map: str | None = None
 
     def _data_file(self) -> pq.ParquetWriter:
         if self.writer is not None and self.path.stat().st_size > DATA_FILE_MB * 1e6:
@@ -222,14 +243,20 @@ class Export:
             images[AFFORDANCE] = (((np.clip(np.nan_to_num(a), 0, 1) * 255).round().astype(np.uint8) for a in maps),
                                   255.0)
         cols: dict[str, list] = {}
+        ep: dict = {}
         for key, (frames, scale) in images.items():
-            cols[key], stats[key] = _image_column(frames, scale)
+            if key in self.videos:
+                stats[key] = Moments()
+                ep.update(self.videos[key].add(_counted(frames, stats[key], scale)))
+            else:
+                cols[key], stats[key] = _image_column(frames, scale)
         writer = self._data_file()
         table = pa.table({
             **{k: pa.array(v, IMAGE_STRUCT) for k, v in cols.items()},
             STATE: pa.array(list(state), self.schema.field(STATE).type),
             ACTION: pa.array(list(action), self.schema.field(ACTION).type),
-            "timestamp": pa.array(t.astype(np.float32), pa.float32()),
+            CAMERA_TIMESTAMP: pa.array(t.astype(np.float32), pa.float32()),
+            "timestamp": pa.array((np.arange(T) / self.layout.fps).astype(np.float32), pa.float32()),
             "frame_index": pa.array(np.arange(T), pa.int64()),
             "episode_index": pa.array(np.full(T, index), pa.int64()),
             "index": pa.array(np.arange(self.frames, self.frames + T), pa.int64()),
@@ -238,7 +265,8 @@ class Export:
         writer.write_table(table)
         ep = {"episode_index": index, "tasks": [task], "length": T, "data/chunk_index": self.chunk,
               "data/file_index": self.file, "dataset_from_index": self.frames, "dataset_to_index": self.frames + T,
-              "meta/episodes/chunk_index": 0, "meta/episodes/file_index": 0, "adlpipe/name": g.name.split("/")[-1]}
+              "meta/episodes/chunk_index": 0, "meta/episodes/file_index": 0, "adlpipe/name": g.name.split("/")[-1],
+              **ep, **self._calibrate(g)}
         for key, m in stats.items():
             image = key.startswith("observation.images.")
             for stat, v in m.stats(image).items():
@@ -247,19 +275,42 @@ class Export:
         self.episodes.append(ep)
         self.frames += T
 
+    def _calibrate(self, g: h5py.Group) -> dict:
+        """The episode's calibration columns; the first episode's also goes into info.json."""
+        cols = {}
+        for cam in schema.camera_names(g):
+            view = schema.read_camera(g, cam)
+            cols[f"adlpipe/{cam}/K"] = view.K.ravel().tolist()
+            cols[f"adlpipe/{cam}/T_base_camera"] = view.T_base_camera.ravel().tolist()
+            self.calibration.setdefault(cam, {
+                "intrinsics": {"fx": float(view.K[0, 0]), "fy": float(view.K[1, 1]), "cx": float(view.K[0, 2]),
+                               "cy": float(view.K[1, 2]), "width": self.layout.size, "height": self.layout.size,
+                               "distortion_model": view.lens.model or "pinhole", "D": list(view.lens.D)},
+                # T_base_camera, row-major: the camera's optical frame in the base frame
+                "extrinsics": view.T_base_camera.ravel().tolist(),
+                "extrinsics_frames": {"parent": str(g.attrs["base_frame"]), "child": view.camera_frame}})
+        if self.topic_map is None:
+            self.topic_map = str(g.attrs.get("topic_map", ""))
+        return cols
+
     def finish(self) -> dict:
-        """Close the data file and write meta/: info, stats, tasks, episodes."""
+        """Close the data and video files and write meta/ (info, stats, tasks, episodes) and the dataset card."""
         if self.writer is not None:
             self.writer.close()
+        for videos in self.videos.values():
+            videos.close()
         meta = self.root / "meta"
         meta.mkdir(parents=True, exist_ok=True)
         feats = self.layout.features()
         info = {"codebase_version": CODEBASE_VERSION, "robot_type": None, "total_episodes": len(self.episodes),
                 "total_frames": self.frames, "total_tasks": len(self.task_index), "chunks_size": CHUNKS_SIZE,
-                "data_files_size_in_mb": DATA_FILE_MB, "video_files_size_in_mb": 200, "fps": self.layout.fps,
-                "splits": {"train": f"0:{len(self.episodes)}"}, "data_path": DATA_PATH, "video_path": None,
-                "features": feats}
+                "data_files_size_in_mb": DATA_FILE_MB, "video_files_size_in_mb": VIDEO_FILE_MB,
+                "fps": self.layout.fps, "splits": {"train": f"0:{len(self.episodes)}"}, "data_path": DATA_PATH,
+                "video_path": VIDEO_PATH if self.videos else None, "features": feats,
+                "calibration": self.calibration,
+                "adlpipe": {"topic_map": json.loads(self.topic_map) if self.topic_map else None}}
         (meta / "info.json").write_text(json.dumps(info, indent=4))
+        (self.root / "README.md").write_text(dataset_card(info))
         stats = {k: m.stats(k.startswith("observation.images.")) for k, m in self.totals.items()}
         (meta / "stats.json").write_text(json.dumps(stats, indent=4, allow_nan=True))
         write_tasks(meta / "tasks.parquet", sorted(self.task_index, key=self.task_index.get))
@@ -283,6 +334,34 @@ def _frames_checked(g: h5py.Group, name: str) -> h5py.Group:
 def _synced(images: h5py.Dataset, index: np.ndarray, blank: np.ndarray) -> Iterator[np.ndarray]:
     """The image synced to each frame (index -1: none, the blank image instead)."""
     return (images[int(i)] if i >= 0 else blank for i in index)
+
+
+def _counted(frames: Iterable[np.ndarray], moments: Moments, scale: float) -> Iterator[np.ndarray]:
+    """The frames, passed on one at a time, their per-channel statistics into `moments` (as _image_column)."""
+    for image in frames:
+        moments.add(image.reshape(-1, 3)[:: max(1, image.size // 3 // 4096)] / scale)
+        yield image
+
+
+def dataset_card(info: dict) -> str:
+    """README.md as LeRobot writes a dataset's card: the Hub's front matter (robotics, the LeRobot tag, the data
+    files), what it holds and meta/info.json."""
+    cameras = ", ".join(k for k, v in info["features"].items() if v["dtype"] in ("video", "image"))
+    shown = {k: v for k, v in info.items() if k not in ("calibration", "adlpipe")}
+    return "\n".join([
+        "---", "license: other", "task_categories:", "- robotics", "tags:", "- LeRobot", "- adlpipe", "configs:",
+        "- config_name: default", "  data_files: data/*/*.parquet", "---", "",
+        "This dataset was exported by adlpipe (`python -m adlpipe.export`) from ROS bags, in the layout of",
+        "[LeRobot](https://github.com/huggingface/lerobot) datasets v3.0. Set its license before you share it.", "",
+        "## Dataset Description", "",
+        f"- **Episodes:** {info['total_episodes']}, **frames:** {info['total_frames']} at {info['fps']} fps, "
+        f"**tasks:** {info['total_tasks']}",
+        f"- **Cameras:** {cameras}; their intrinsics and extrinsics are in `meta/info.json` under `calibration`, "
+        "the topic map under `adlpipe`",
+        f"- **observation.state:** {', '.join(info['features']['observation.state']['names'])}",
+        "- **action:** the end effector's position at the next frame", "",
+        "## Dataset Structure", "", "[meta/info.json](meta/info.json):", "```json", json.dumps(shown, indent=4), "```",
+        ""])
 
 
 def _image_column(frames: Iterable[np.ndarray], scale: float) -> tuple[list[dict], Moments]:
