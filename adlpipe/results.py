@@ -51,7 +51,9 @@ STUDY_FILES = {"metrics/seed0/eval_details.json": "eval_details.json",
                "metrics/replay_open_details.json": "replay_open_details.json",
                "metrics/replay_closed_loop_details.json": "replay_closed_loop_details.json",
                "reports/report.md": "report.md", "reports/seeds.md": "seeds.md",
-               "reports/closed_loop/report.md": "closed_loop_report.md"}
+               "reports/closed_loop/report.md": "closed_loop_report.md",
+               **{f"metrics/seed{k}/{kind}_details.json": f"seed{k}/{kind}_details.json"
+                  for k in (1, 2) for kind in ("eval", "replay")}}
 OPEN_LOOP_OF = {"fm_cnn": "fm_cnn/euler-1", "dp_cnn": "dp_cnn/ddpm-16", "bc_cnn": "bc_cnn"}
 
 
