@@ -8,9 +8,11 @@ The ground truth is returned beside the bag: where the end-effector frame really
 from __future__ import annotations
 
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
+from rosbags.typesys import get_types_from_msg
 
 from adlpipe.bags import messages as M
 from adlpipe.bags.images import encode_compressed_depth
@@ -70,6 +72,8 @@ class Layout:
     joint_nan_s: float | None = None  # joint_3's sample nearest this time is NaN (a driver's lost reading)
     joint_stuck: tuple[float, float] | None = None  # joint_3 repeats its value from t0 to t1 s (a stuck sensor)
     clock_offset_s: float = 0.0  # every stamp later by this (the same demonstration saved again later)
+    video: str | None = None  # the camera as H.264 video: "CompressedVideo" (foxglove_msgs) or "FFMPEGPacket"
+    video_cut: int = 0  # the recording starts this many packets into the stream (between keyframes: GOP 10)
 
 
 # A wrist camera as labs mount one: fixed to the arm's last moving link by /tf_static, its own topics and size.
@@ -147,6 +151,7 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
             a = k * (lay.duration_s + lay.pause_s)
             events.append((ns(a), 1, "/segment", M.STRING, lambda: f.string("start")))
             events.append((ns(a + lay.duration_s), 9, "/segment", M.STRING, lambda: f.string("stop")))
+    encoder = _H264(lay) if lay.video else None
     for k in range(int(round(total * lay.camera_hz)) + 1):
         t = k / lay.camera_hz
         tn = ns(t)
@@ -155,6 +160,10 @@ def write_layout_bag(path: Path, lay: Layout) -> tuple[Path, np.ndarray, np.ndar
                                                    *((lay.lens[0], np.array(lay.lens[1])) if lay.lens else ()))))
         late = ns(t + (lay.late_frames or {}).get(k, 0.0) / lay.camera_hz)  # log time; the header keeps tn
         stamp = 0 if lay.zero_image_stamps else tn
+        if lay.video:
+            if k >= lay.video_cut:
+                events.append(_video_event(f, lay, cam, k, tn, encoder))
+            continue
         events.append((late, 3, cam["image"], M.IMAGE,  # made when written: a long bag is never all in memory
                        lambda stamp=stamp, k=k: f.image(stamp, cam["frame"], *_camera_image(k, lay))))
         if lay.depth:
@@ -266,6 +275,53 @@ def encode_rgb(rgb: np.ndarray, encoding: str) -> np.ndarray:
     else:  # yuv422_yuy2, yuyv
         out[..., 0], out[..., 1], out[..., 2], out[..., 3] = y[:, 0::2], u, y[:, 1::2], v
     return out.reshape(h, w, 2)
+
+
+VIDEO_DEFS = {  # the two video transports' message definitions, registered in the writer's type store
+    "CompressedVideo": ("foxglove_msgs/msg/CompressedVideo",
+                        "builtin_interfaces/Time timestamp\nstring frame_id\nuint8[] data\nstring format"),
+    "FFMPEGPacket": ("ffmpeg_image_transport_msgs/msg/FFMPEGPacket",
+                     "std_msgs/Header header\nint32 width\nint32 height\nstring encoding\nuint64 pts\nuint8 flags\n"
+                     "bool is_bigendian\nuint8[] data"),
+}
+
+
+class _H264:
+    """Every camera frame of the layout encoded with PyAV's libx264 as a streaming encoder sends it: one packet per
+    frame (no B-frames), a keyframe every 10 frames and no other, Annex B with its parameter sets in every keyframe."""
+
+    def __init__(self, lay: Layout) -> None:
+        import av
+
+        width, height = lay.size
+        ctx = av.CodecContext.create("libx264", "w")
+        ctx.width, ctx.height, ctx.pix_fmt = width, height, "yuv420p"
+        ctx.time_base = Fraction(1, int(lay.camera_hz))
+        ctx.options = {"g": "10", "bf": "0", "tune": "zerolatency", "crf": "12", "x264-params": "scenecut=0"}
+        self.packets: list[tuple[bytes, bool]] = []
+        total = lay.demos * (lay.duration_s + lay.pause_s) - lay.pause_s + lay.idle_start_s
+        for k in range(int(round(total * lay.camera_hz)) + 1):
+            frame = av.VideoFrame.from_ndarray(smooth_rgb(k, height, width), format="rgb24")
+            frame.pts = k
+            self.packets += [(bytes(p), bool(p.is_keyframe)) for p in ctx.encode(frame)]
+        self.packets += [(bytes(p), bool(p.is_keyframe)) for p in ctx.encode()]
+
+
+def _video_event(f: M.MessageFactory, lay: Layout, cam: dict, k: int, tn: int, encoder: _H264) -> tuple:
+    msgtype, msgdef = VIDEO_DEFS[lay.video]
+    if msgtype not in f.T:
+        f.store.register(get_types_from_msg(msgdef, msgtype))
+    data, key = encoder.packets[k]
+    width, height = lay.size
+
+    def build() -> object:
+        payload = np.frombuffer(data, np.uint8)
+        if lay.video == "CompressedVideo":
+            return f.T[msgtype](timestamp=f.stamp(tn), frame_id=cam["frame"], data=payload, format="h264")
+        return f.T[msgtype](header=f.header(tn, cam["frame"]), width=width, height=height, encoding="libx264",
+                            pts=k, flags=int(key), is_bigendian=False, data=payload)
+
+    return (tn, 3, cam["image"], msgtype, build)
 
 
 def _camera_image(k: int, lay: Layout) -> tuple[np.ndarray, str]:

@@ -20,8 +20,9 @@ from ..geometry import TfBuffer, pose_matrix
 from .images import DEPTH_TYPES, as_rgb8, decode_depth, decode_image
 from .reader import BagSource, TopicInfo
 from .topics import TopicMap
+from .video import VIDEO_TYPES, VideoDecoder, is_video
 
-IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}
+IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", *VIDEO_TYPES}
 TF_TYPES = {"tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"}  # tf/tfMessage: old ROS1 bags, same layout
 
 
@@ -71,6 +72,7 @@ class BagReadout:
     read: dict[str, int] = field(default_factory=dict)
     series: dict[str, Series] = field(default_factory=dict)  # "state" / "action" -> what its topic carried
     cameras: dict[str, CameraReadout] = field(default_factory=dict)  # the map's other cameras, by name
+    video_skipped: dict[str, int] = field(default_factory=dict)  # video topic -> packets before its first keyframe
 
 
 @dataclass
@@ -97,7 +99,7 @@ class Series:
 
 def stamp_s(msg: object) -> float:
     """header.stamp in seconds (ROS2 sec/nanosec, ROS1 secs/nsecs)."""
-    st = msg.header.stamp
+    st = msg.header.stamp if hasattr(msg, "header") else msg.timestamp  # foxglove's CompressedVideo: no header
     sec = getattr(st, "sec", None)
     if sec is None:
         sec = st.secs
@@ -105,6 +107,10 @@ def stamp_s(msg: object) -> float:
     if nsec is None:
         nsec = st.nsecs
     return int(sec) + int(nsec) * 1e-9
+
+
+def frame_id(msg: object) -> str:
+    return str(msg.header.frame_id if hasattr(msg, "header") else msg.frame_id)
 
 
 def stamped(msg: object, where: str) -> float:
@@ -224,7 +230,8 @@ def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None
         depth=state.depth.finish(state.t_img) if tm.depth in topics else None,
         affordance=state.aff.finish(state.t_img) if tm.affordance in topics else None,
         first_pose=state.first_pose, joint_t=state.joint_t, joint_pos=state.joint_pos,
-        joint_names=state.joint_names, read=read, series=state.series, cameras=state.cameras)
+        joint_names=state.joint_names, read=read, series=state.series, cameras=state.cameras,
+        video_skipped={t: d.skipped for t, d in state.video.items() if d.skipped})
 
 
 class _Streams:
@@ -248,6 +255,15 @@ class _Streams:
         self.cameras = {c.name: CameraReadout(c.name) for c in tm.extra_cameras}
         self.camera_of = {t: (c.name, role) for c in tm.extra_cameras
                           for role, t in (("image", c.image), ("info", c.camera_info), ("depth", c.depth)) if t}
+        self.video: dict[str, VideoDecoder] = {}  # camera topics that carry video: their decoders
+
+    def frames(self, topic: str, msg: object) -> list[tuple[float, np.ndarray]]:
+        """(stamp, RGB image) of what one camera message completes: its image, or for a video topic the frames
+        its packet decodes to (none before the first keyframe)."""
+        where = self.where(topic)
+        if is_video(msg):
+            return self.video.setdefault(topic, VideoDecoder(where)).feed(msg, stamped(msg, where))
+        return [(stamped(msg, where), as_rgb8(decode_image(msg, where), where))]
 
     def where(self, topic: str) -> str:
         return f"{self.bag}: topic {topic}"
@@ -259,16 +275,15 @@ class _Streams:
         elif topic == tm.image:
             if self.image is None or self.sink:
                 msg = decode()
-                where = self.where(topic)
-                image, t = as_rgb8(decode_image(msg, where), where), stamped(msg, where)
-                if self.image is None:
-                    self.image, self.t_img = image, t
-                    self.camera_frame = check_name(str(msg.header.frame_id), "frame", self.where(topic))
-                elif image.shape[:2] != self.image.shape[:2]:
-                    raise AdlError(f"{self.where(topic)}: image size changes from {self.image.shape[1]}x"
-                                   f"{self.image.shape[0]} to {image.shape[1]}x{image.shape[0]} within the bag")
-                if self.sink:
-                    self.sink.rgb(t, image, self.where(topic))
+                for t, image in self.frames(topic, msg):
+                    if self.image is None:
+                        self.image, self.t_img = image, t
+                        self.camera_frame = check_name(frame_id(msg), "frame", self.where(topic))
+                    elif image.shape[:2] != self.image.shape[:2]:
+                        raise AdlError(f"{self.where(topic)}: image size changes from {self.image.shape[1]}x"
+                                       f"{self.image.shape[0]} to {image.shape[1]}x{image.shape[0]} within the bag")
+                    if self.sink:
+                        self.sink.rgb(t, image, self.where(topic))
         elif topic == tm.camera_info:
             if self.info is None:
                 self.info = decode()
@@ -310,19 +325,18 @@ class _Streams:
         if not self.sink and (role == "depth" or cam.shape is not None):
             return
         msg = decode()
-        t = stamp_s(msg)
         if role == "depth":
-            self.sink.camera(name).depth(t, decode_depth(msg, where))
+            self.sink.camera(name).depth(stamp_s(msg), decode_depth(msg, where))
             return
-        image = as_rgb8(decode_image(msg, where), where)
-        if cam.shape is None:
-            cam.shape, cam.t_first = image.shape, t
-            cam.frame = check_name(str(msg.header.frame_id), "frame", where)
-        elif image.shape[:2] != cam.shape[:2]:
-            raise AdlError(f"{where}: image size changes from {cam.shape[1]}x{cam.shape[0]} to "
-                           f"{image.shape[1]}x{image.shape[0]} within the bag")
-        if self.sink:
-            self.sink.camera(name).rgb(t, image, where)
+        for t, image in self.frames(topic, msg):
+            if cam.shape is None:
+                cam.shape, cam.t_first = image.shape, t
+                cam.frame = check_name(frame_id(msg), "frame", where)
+            elif image.shape[:2] != cam.shape[:2]:
+                raise AdlError(f"{where}: image size changes from {cam.shape[1]}x{cam.shape[0]} to "
+                               f"{image.shape[1]}x{image.shape[0]} within the bag")
+            if self.sink:
+                self.sink.camera(name).rgb(t, image, where)
 
     def _to_sink(self, topic: str, t: float, msg: object) -> None:
         where = self.where(topic)

@@ -35,7 +35,7 @@ TO_RGB = {
 }
 
 
-def _as_bytes(data: object) -> memoryview:
+def as_bytes(data: object) -> memoryview:
     """uint8[] fields decode to bytes (mcap) or numpy arrays (rosbags)."""
     if isinstance(data, np.ndarray):
         return memoryview(np.ascontiguousarray(data, dtype=np.uint8)).cast("B")
@@ -49,7 +49,7 @@ def decode_raw(msg: object, where: str) -> np.ndarray:
         raise AdlError(f"{where}: unsupported image encoding {enc!r} (supported: {', '.join(ENCODINGS)})")
     dtype, ch = ENCODINGS[enc]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    data = _as_bytes(msg.data)
+    data = as_bytes(msg.data)
     row = w * ch * np.dtype(dtype).itemsize
     if h <= 0 or w <= 0 or h * w > MAX_PIXELS:
         raise AdlError(f"{where}: image header claims {w}x{h} pixels (limit {MAX_PIXELS})")
@@ -120,7 +120,7 @@ def _quiet_stderr() -> Iterator[None]:
 
 def decode_compressed(msg: object, where: str) -> np.ndarray:
     """sensor_msgs/CompressedImage (jpeg/png) -> HxWx3 RGB."""
-    data = _as_bytes(msg.data)
+    data = as_bytes(msg.data)
     size = compressed_size(data)
     if size is None:
         raise AdlError(f"{where}: CompressedImage (format {msg.format!r}) is neither PNG nor JPEG data")
@@ -182,7 +182,7 @@ def decode_depth(msg: object, where: str) -> np.ndarray:
     if "compresseddepth" not in fmt.lower().replace(" ", ""):
         raise AdlError(f"{where}: depth CompressedImage has format {fmt!r}; expected '16UC1; compressedDepth png' "
                        "or '...; compressedDepth rvl'")
-    data = bytes(_as_bytes(msg.data))
+    data = bytes(as_bytes(msg.data))
     if len(data) < _DEPTH_HEADER.size + 8:
         raise AdlError(f"{where}: compressedDepth message too short ({len(data)} bytes)")
     _kind, quant_a, quant_b = _DEPTH_HEADER.unpack_from(data)

@@ -119,6 +119,8 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         notes.append(non_finite_note(int((~finite).sum()), len(finite), f"joint states on {tm.joints}",
                                      joint_t[k], r.joint_names[int(np.flatnonzero(~np.isfinite(joint_pos[k]))[0])]))
         joint_t, joint_pos = joint_t[finite], joint_pos[finite]
+    for topic, n in r.video_skipped.items():
+        notes.append(f"skipped {n} video packet(s) on {topic} before its first keyframe")
     for key, series in r.series.items():
         if series.non_finite:
             t, name = series.non_finite[0]
