@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import AdlError
 from ..geometry import TfBuffer, pose_matrix
+from .foxglove import AS_ROS
 from .images import DEPTH_TYPES, as_rgb8, decode_depth, decode_image
 from .reader import BagSource, TopicInfo
 from .topics import TopicMap
@@ -168,7 +169,7 @@ def check_types(bag: Path, topics: dict, tm: TopicMap) -> None:
             tm.joints: {"sensor_msgs/msg/JointState"}, tm.task: {"std_msgs/msg/String"},
             tm.state: {"sensor_msgs/msg/JointState"}, tm.action: {"sensor_msgs/msg/JointState"}}
     for topic, types in want.items():
-        if topic and topic in topics and topics[topic].msgtype not in types | {"?"}:
+        if topic and topic in topics and AS_ROS.get(topics[topic].msgtype, topics[topic].msgtype) not in types | {"?"}:
             expected = " or ".join(sorted(types))
             raise AdlError(f"{bag}: topic {topic} has type {topics[topic].msgtype}, expected {expected}")
 

@@ -12,6 +12,7 @@ from functools import partial
 from pathlib import Path
 
 from ..errors import AdlError, NoDecoder
+from .foxglove import AS_ROS, JsonDecoderFactory, as_ros
 from .messages import typestore
 from .splits import recording_parts
 
@@ -162,10 +163,11 @@ class BagSource:
         return None
 
     def _decoders(self) -> list:
+        from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoder
         from mcap_ros1.decoder import DecoderFactory as Ros1Decoder
         from mcap_ros2.decoder import DecoderFactory as Ros2Decoder
 
-        return [Ros2Decoder(), Ros1Decoder()]
+        return [Ros2Decoder(), Ros1Decoder(), ProtobufDecoder(), JsonDecoderFactory()]
 
     def _decode(self, schema, channel, message, cache: dict) -> object:  # noqa: ANN001
         key = channel.id
@@ -174,13 +176,18 @@ class BagSource:
             for factory in self._decoders():
                 # mcap_ros2's schema parser prints its own "Error with: ..." line; ours is the one that counts
                 with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
-                    decoder = factory.decoder_for(channel.message_encoding, schema)
+                    try:
+                        decoder = factory.decoder_for(channel.message_encoding, schema)
+                    except Exception:  # noqa: BLE001 - a schema this factory cannot parse: it has no decoder
+                        decoder = None
                 if decoder is not None:
                     break
             if decoder is None:
                 name = schema.name if schema else "?"
                 raise NoDecoder(f"{self.path}: topic {channel.topic}: no decoder for message type {name} "
                                 f"(encoding {channel.message_encoding!r})", channel.message_encoding)
+            if schema is not None and schema.name in AS_ROS:  # the Foxglove SDK's: read as the ROS message
+                decoder = partial(lambda d, name, data: as_ros(name, d(data)), decoder, schema.name)
             cache[key] = decoder
         if message.data[:4] == ZSTD_MAGIC:  # rosbag2 'message' compression: each payload zstd-compressed
             raise AdlError(f"{self.path}: a compressed rosbag2 split (each message zstd-compressed); give its folder, "
