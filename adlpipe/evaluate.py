@@ -17,6 +17,7 @@ for `dvc plots`, and a markdown table shaped like the paper's Table 1.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import json
@@ -317,6 +318,35 @@ def _training_metrics(model_dir: Path) -> dict:
         return {}
 
 
+def evaluate_models(args: argparse.Namespace, journal: Journal, test: list[str], image_px: int,
+                    modes: dict[int, torch.Tensor], placement: Placement) -> tuple[dict[str, dict], dict[str, dict]]:
+    """(model -> {"best": rows, "last": rows}, model -> what training wrote); a model the journal holds (a killed
+    run had finished it) is taken from it, every other one goes into it once evaluated."""
+    results: dict[str, dict] = {}
+    training: dict[str, dict] = {}
+    methods = {"fm": args.fm_methods, "ddpm": args.dp_methods}
+    for d in args.models:
+        if str(d) in journal.done:
+            training[d.name], results[d.name] = journal.done[str(d)]["training"], journal.done[str(d)]["results"]
+            continue
+        training[d.name] = _training_metrics(d)
+        last = evaluate_model(d, args.data, test, args.steps, methods, args.best_of, args.repeats,
+                              args.seed, image_px, placement=placement, modes=modes)
+        t = training[d.name]
+        if t and t.get("best_epoch") == t.get("epochs"):
+            best = last  # the best validation epoch was the last: best.pt holds model.pt's weights
+        else:
+            best = evaluate_model(d, args.data, test, args.steps, methods, args.best_of, args.repeats,
+                                  args.seed, image_px, CHECKPOINTS["best"], timings=last, placement=placement,
+                                  modes=modes)
+        results[d.name] = {"best": best, "last": last}
+        journal.add(str(d), {"training": training[d.name], "results": results[d.name]})
+        top = min(best.values(), key=lambda r: r["px"])
+        print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
+              f"{top['steps']} steps){'' if training[d.name].get('converged') else ', not converged'}")
+    return results, training
+
+
 def main(argv: list[str] | None = None) -> int:
     p = Parser("python -m adlpipe.evaluate", __doc__)
     p.add_argument("--models", nargs="+", type=Path, required=True, help="model folders (holding model.pt)")
@@ -354,9 +384,6 @@ def main(argv: list[str] | None = None) -> int:
     with schema.open_dataset(args.data, split["test"]) as f:
         image_px = int(f[schema.EPISODES][split["test"][0]]["rgb"].shape[0])
     modes = reference_modes(args.data, split["test"], args.workers)
-    results: dict[str, dict] = {}
-    training: dict[str, dict] = {}
-    methods = {"fm": args.fm_methods, "ddpm": args.dp_methods}
     for d in args.models:
         for name in CHECKPOINTS.values():
             if not (d / name).exists():
@@ -365,25 +392,7 @@ def main(argv: list[str] | None = None) -> int:
                                                 split_path, args.data))
     if journal.done:
         print(f"resuming: {len(journal.done)} model(s) evaluated before ({journal.path})")
-    for d in args.models:
-        if str(d) in journal.done:
-            training[d.name], results[d.name] = journal.done[str(d)]["training"], journal.done[str(d)]["results"]
-            continue
-        training[d.name] = _training_metrics(d)
-        last = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
-                              args.seed, image_px, placement=placement, modes=modes)
-        t = training[d.name]
-        if t and t.get("best_epoch") == t.get("epochs"):
-            best = last  # the best validation epoch was the last: best.pt holds model.pt's weights
-        else:
-            best = evaluate_model(d, args.data, split["test"], args.steps, methods, args.best_of, args.repeats,
-                                  args.seed, image_px, CHECKPOINTS["best"], timings=last, placement=placement,
-                                  modes=modes)
-        results[d.name] = {"best": best, "last": last}
-        journal.add(str(d), {"training": training[d.name], "results": results[d.name]})
-        top = min(best.values(), key=lambda r: r["px"])
-        print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
-              f"{top['steps']} steps){'' if training[d.name].get('converged') else ', not converged'}")
+    results, training = evaluate_models(args, journal, split["test"], image_px, modes, placement)
     try:
         blind = blind_rows(args.data, split, image_px, args.best_of)
         results[BLIND] = {"best": blind, "last": blind}

@@ -258,12 +258,8 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
                "windows_per_epoch": windows_per_epoch}
 
     torch.manual_seed(seed)
-    policy = Policy(cfg).to(device)
-    model = DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None) \
-        if ranks.world > 1 else policy  # averages the gradients over the processes in backward
-    opt = torch.optim.AdamW(policy.parameters(), lr=lr, betas=ADAMW_BETAS, weight_decay=weight_decay, fused=True)
-    sched = cosine_with_warmup(opt, warmup_steps, epochs * steps_per_epoch)
-    ema = EMA(policy)
+    policy, model, opt, sched, ema = optimisation(cfg, device, ranks, lr, weight_decay, warmup_steps,
+                                                  epochs * steps_per_epoch)
     last = work / "last.pt"
     history, start_epoch = resume(last, cfg, hparams, policy, ema, opt, sched, replace_stale=resume_dir is not None)
     best_px = min((r["val_px"] for r in history if r.get("val_px") is not None), default=math.inf)
@@ -414,6 +410,18 @@ def resume(last: Path, cfg: ModelConfig, hparams: dict, policy: Policy, ema: EMA
     opt.load_state_dict(ck["optimizer"])
     sched.load_state_dict(ck["scheduler"])
     return list(ck["history"]), int(ck["epoch"])
+
+
+def optimisation(cfg: ModelConfig, device: torch.device, ranks: Ranks, lr: float, weight_decay: float,
+                 warmup_steps: int, total_steps: int) -> tuple[Policy, torch.nn.Module, torch.optim.Optimizer, object,
+                                                            EMA]:
+    """(policy, the module to train: the policy, or under torchrun its DistributedDataParallel wrapper, which
+    averages the gradients over the processes in backward; AdamW, its schedule, the EMA weights)."""
+    policy = Policy(cfg).to(device)
+    model = DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None) \
+        if ranks.world > 1 else policy
+    opt = torch.optim.AdamW(policy.parameters(), lr=lr, betas=ADAMW_BETAS, weight_decay=weight_decay, fused=True)
+    return policy, model, opt, cosine_with_warmup(opt, warmup_steps, total_steps), EMA(policy)
 
 
 def check_run(split: dict, split_path: Path, batch_size: int, ranks: Ranks) -> None:

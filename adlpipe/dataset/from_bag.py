@@ -54,6 +54,27 @@ def non_finite_note(dropped: int, of: int, what: str, t: float, name: str) -> st
     return f"left out {dropped} of {of} {what} with {NON_FINITE} (the first at {t:.2f} s, in {name})"
 
 
+def finite_joints(r: BagReadout, tm: TopicMap, n_joints: int, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The joint states (s from the first image, positions) without those a sensor sent as NaN, which the notes
+    name, as they name the state / action messages left out so, and the video packets before a first keyframe."""
+    joint_t = np.asarray(r.joint_t, float) - r.t_img
+    joint_pos = np.asarray(r.joint_pos, float).reshape(len(r.joint_t), n_joints)
+    finite = np.isfinite(joint_pos).all(1)
+    if not finite.all():
+        k = int(np.flatnonzero(~finite)[0])
+        notes.append(non_finite_note(int((~finite).sum()), len(finite), f"joint states on {tm.joints}",
+                                     joint_t[k], r.joint_names[int(np.flatnonzero(~np.isfinite(joint_pos[k]))[0])]))
+        joint_t, joint_pos = joint_t[finite], joint_pos[finite]
+    for key, series in r.series.items():
+        if series.non_finite:
+            t, name = series.non_finite[0]
+            notes.append(non_finite_note(len(series.non_finite), len(series.non_finite) + len(series.t),
+                                         f"{key} messages on {getattr(tm, key)}", t - r.t_img, name))
+    notes += [f"skipped {n} video packet(s) on {topic} before its first keyframe" for topic, n in
+              r.video_skipped.items()]
+    return joint_t, joint_pos
+
+
 def recovery_note(src: BagSource, read: dict[str, int]) -> str:
     """How much of a truncated MCAP was lost, on the topics the ingest uses."""
     meta = src.declared_in_metadata()
@@ -111,21 +132,7 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
     cameras = [other_camera(r, tm, c, size, traj3d) for c in tm.extra_cameras]
     names, poses = object_poses(r, tm, camera_frame, [c.camera_frame for c in cameras])
     n_joints = len(r.joint_names) if r.joint_t else 0
-    joint_t = np.asarray(r.joint_t, float) - r.t_img
-    joint_pos = np.asarray(r.joint_pos, float).reshape(len(r.joint_t), n_joints)
-    finite = np.isfinite(joint_pos).all(1)
-    if not finite.all():  # a sensor's NaN: those joint states are left out, and the episode says so
-        k = int(np.flatnonzero(~finite)[0])
-        notes.append(non_finite_note(int((~finite).sum()), len(finite), f"joint states on {tm.joints}",
-                                     joint_t[k], r.joint_names[int(np.flatnonzero(~np.isfinite(joint_pos[k]))[0])]))
-        joint_t, joint_pos = joint_t[finite], joint_pos[finite]
-    for topic, n in r.video_skipped.items():
-        notes.append(f"skipped {n} video packet(s) on {topic} before its first keyframe")
-    for key, series in r.series.items():
-        if series.non_finite:
-            t, name = series.non_finite[0]
-            notes.append(non_finite_note(len(series.non_finite), len(series.non_finite) + len(series.t),
-                                         f"{key} messages on {getattr(tm, key)}", t - r.t_img, name))
+    joint_t, joint_pos = finite_joints(r, tm, n_joints, notes)
     if frames is not None:
         gripper = r.joint_names.index(tm.gripper_joint) if tm.gripper_joint in r.joint_names[:n_joints] else None
         frames.finish(r.t_img, t_end, tm.sync_tolerance_s, ee_t, ee_p, joint_t, joint_pos, gripper,
