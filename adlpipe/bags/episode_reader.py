@@ -100,7 +100,8 @@ class Series:
 
 def stamp_s(msg: object) -> float:
     """header.stamp in seconds (ROS2 sec/nanosec, ROS1 secs/nsecs)."""
-    st = msg.header.stamp if hasattr(msg, "header") else msg.timestamp  # foxglove's CompressedVideo: no header
+    # foxglove's CompressedVideo has a timestamp and no header; every other stamped message has a header
+    st = msg.timestamp if hasattr(msg, "timestamp") and not hasattr(msg, "header") else msg.header.stamp
     sec = getattr(st, "sec", None)
     if sec is None:
         sec = st.secs
@@ -111,7 +112,7 @@ def stamp_s(msg: object) -> float:
 
 
 def frame_id(msg: object) -> str:
-    return str(msg.header.frame_id if hasattr(msg, "header") else msg.frame_id)
+    return str(msg.frame_id if hasattr(msg, "frame_id") and not hasattr(msg, "header") else msg.header.frame_id)
 
 
 def stamped(msg: object, where: str) -> float:

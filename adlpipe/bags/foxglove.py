@@ -77,3 +77,17 @@ class JsonDecoderFactory:
         if message_encoding != "json":
             return None
         return lambda data: json.loads(bytes(data))
+
+
+class SafeFactory:
+    """A decoder factory whose schema parser may fail on a schema it cannot read (mcap-protobuf-support on a
+    FileDescriptorSet that is not one): then it has no decoder for the channel, which reader.NoDecoder names."""
+
+    def __init__(self, factory: object) -> None:
+        self.factory = factory
+
+    def decoder_for(self, message_encoding: str, schema: object) -> object:
+        try:
+            return self.factory.decoder_for(message_encoding, schema)
+        except Exception:  # noqa: BLE001 - whatever the parser raises, the channel is one it cannot decode
+            return None

@@ -12,7 +12,7 @@ from functools import partial
 from pathlib import Path
 
 from ..errors import AdlError, NoDecoder
-from .foxglove import AS_ROS, JsonDecoderFactory, as_ros
+from .foxglove import AS_ROS, JsonDecoderFactory, SafeFactory, as_ros
 from .messages import typestore
 from .splits import recording_parts
 
@@ -167,7 +167,7 @@ class BagSource:
         from mcap_ros1.decoder import DecoderFactory as Ros1Decoder
         from mcap_ros2.decoder import DecoderFactory as Ros2Decoder
 
-        return [Ros2Decoder(), Ros1Decoder(), ProtobufDecoder(), JsonDecoderFactory()]
+        return [Ros2Decoder(), Ros1Decoder(), SafeFactory(ProtobufDecoder()), JsonDecoderFactory()]
 
     def _decode(self, schema, channel, message, cache: dict) -> object:  # noqa: ANN001
         key = channel.id
@@ -176,10 +176,7 @@ class BagSource:
             for factory in self._decoders():
                 # mcap_ros2's schema parser prints its own "Error with: ..." line; ours is the one that counts
                 with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
-                    try:
-                        decoder = factory.decoder_for(channel.message_encoding, schema)
-                    except Exception:  # noqa: BLE001 - a schema this factory cannot parse: it has no decoder
-                        decoder = None
+                    decoder = factory.decoder_for(channel.message_encoding, schema)
                 if decoder is not None:
                     break
             if decoder is None:
