@@ -15,15 +15,15 @@ what the dataset holds, a dataset refused as damaged.
 from __future__ import annotations
 
 import argparse
-import random
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
-from collections import Counter
 from pathlib import Path
+
+from verdicts import record_small, tally
 
 PY = sys.executable
 
@@ -75,13 +75,9 @@ def main() -> int:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
-    rng = random.Random(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        subprocess.run([PY, "-m", "adlpipe.record", "--out", str(root / "bags"), "--episodes", "3", "--size", "32",
-                        "--camera-hz", "5", "--tasks", "comb the hair", "pass the water"], check=True,
-                       capture_output=True)
-        bags = sorted((root / "bags").iterdir())
+        bags = record_small(root / "bags")
         base = root / "base"
         base.mkdir()
         subprocess.run([PY, "-m", "adlpipe.ingest", *map(str, bags[:2]), "-o", str(base / "adl.h5"), "--size", "32"],
@@ -90,16 +86,8 @@ def main() -> int:
         proc = ingest(bags[2:], root / "timing.h5", args.workers)
         proc.communicate()
         span = time.time() - t0
-        counts: Counter = Counter()
-        for k in range(args.runs):
-            verdict = one_run(root, base, bags[2:], rng.uniform(0.2, span), args.workers)
-            counts[verdict] += 1
-            print(f"run {k + 1}: {verdict}", flush=True)
-    print(f"\n{args.runs} runs, --workers {args.workers} (an uninterrupted ingest takes {span:.1f} s):")
-    for verdict, n in counts.most_common():
-        print(f"  {n:3d}  {verdict}")
-    return 1 if any("BAD" in v for v in counts) else 0
-
+        return tally(args.runs, span, args.seed, lambda delay: one_run(root, base, bags[2:], delay, args.workers),
+                     f"--workers {args.workers} (an uninterrupted ingest takes {span:.1f} s)")
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -12,15 +12,15 @@ an interrupt during a read as a SystemError, which once read as "its file ... is
 from __future__ import annotations
 
 import argparse
-import random
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
-from collections import Counter
 from pathlib import Path
+
+from verdicts import record_small, tally
 
 PY = sys.executable
 CHECK = ("import sys\nfrom adlpipe.dataset import schema\n"
@@ -64,29 +64,18 @@ def main() -> int:
     p.add_argument("--stage", choices=["export", "train"], default="export")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
-    rng = random.Random(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        subprocess.run([PY, "-m", "adlpipe.record", "--out", str(root / "bags"), "--episodes", "3", "--size", "32",
-                        "--camera-hz", "5", "--tasks", "comb the hair", "pass the water"], check=True,
-                       capture_output=True)
+        bags = record_small(root / "bags")
         data = root / "adl.h5"
-        subprocess.run([PY, "-m", "adlpipe.ingest", *map(str, sorted((root / "bags").iterdir())), "-o", str(data),
+        subprocess.run([PY, "-m", "adlpipe.ingest", *map(str, bags), "-o", str(data),
                         "--size", "32"], check=True, capture_output=True)
         subprocess.run([PY, "-m", "adlpipe.split", str(data)], check=True, capture_output=True)
         t0 = time.time()
         subprocess.run(command(args.stage, data, root / "timing"), check=True, capture_output=True)
         span = time.time() - t0
-        counts: Counter = Counter()
-        for k in range(args.runs):
-            verdict = one_run(root, data, args.stage, rng.uniform(0.2, span))
-            counts[verdict] += 1
-            print(f"run {k + 1}: {verdict}", flush=True)
-    print(f"\n{args.runs} runs of {args.stage} (uninterrupted it takes {span:.1f} s):")
-    for verdict, n in counts.most_common():
-        print(f"  {n:3d}  {verdict}")
-    return 1 if any("BAD" in v for v in counts) else 0
-
+        return tally(args.runs, span, args.seed, lambda delay: one_run(root, data, args.stage, delay),
+                     f"of {args.stage} (uninterrupted it takes {span:.1f} s)")
 
 if __name__ == "__main__":
     sys.exit(main())
