@@ -134,7 +134,13 @@ def test_the_lerobot_export_has_one_image_key_per_camera(two_cameras: Path, tmp_
 
     from adlpipe.export import export_lerobot
 
-    export_lerobot(two_cameras, tmp_path / "le")
+    export_lerobot(two_cameras, tmp_path / "video")  # the default: one video per camera, depth as PNG
+    info = json.loads((tmp_path / "video" / "meta" / "info.json").read_text())
+    videos = sorted(k for k, v in info["features"].items() if v["dtype"] == "video")
+    assert videos == ["observation.images.scene", "observation.images.wrist"]
+    assert all((tmp_path / "video" / "videos" / k / "chunk-000" / "file-000.mp4").exists() for k in videos)
+    assert sorted(info["calibration"]) == ["scene", "wrist"]
+    export_lerobot(two_cameras, tmp_path / "le", video=False)  # lossless PNG in the data files
     info = json.loads((tmp_path / "le" / "meta" / "info.json").read_text())
     images = sorted(k for k, v in info["features"].items() if v["dtype"] == "image")
     assert images == ["observation.images.depth", "observation.images.scene", "observation.images.wrist"]
