@@ -14,16 +14,10 @@ import json
 import os
 from pathlib import Path
 
+from .dataset.from_bag import sha256_of
+
 # arguments that change where or how fast a stage runs, never its figures
 NOT_FIGURES = ("force", "workers", "threads", "metrics", "details", "plots", "table", "failures")
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def fingerprint(args: argparse.Namespace, checkpoints: list[Path], split: Path, data: Path) -> str:
@@ -31,8 +25,8 @@ def fingerprint(args: argparse.Namespace, checkpoints: list[Path], split: Path, 
     dataset would cost more than most parts), the split and the checkpoints by content."""
     st = data.stat()
     what = {"args": {k: v for k, v in sorted(vars(args).items()) if k not in NOT_FIGURES},
-            "split": file_sha256(split), "data": [str(data.resolve()), st.st_size, st.st_mtime_ns],
-            "checkpoints": {str(p): file_sha256(p) for p in checkpoints if p.exists()}}
+            "split": sha256_of(split), "data": [str(data.resolve()), st.st_size, st.st_mtime_ns],
+            "checkpoints": {str(p): sha256_of(p) for p in checkpoints if p.exists()}}
     return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()
 
 

@@ -42,15 +42,16 @@ class VideoDecoder:
     """One topic's decoder: fed every message in order, it returns the frames decoded so far with their stamps."""
 
     def __init__(self, where: str) -> None:
-        self.where = where
+        import av  # PyAV: only a video topic needs it
+
+        self.av, self.where = av, where
         self.context = None
         self.stamps: deque[float] = deque()
         self.skipped = 0  # packets before the first keyframe
         self.started = False
 
     def feed(self, msg: object, stamp: float) -> list[tuple[float, np.ndarray]]:
-        import av
-
+        av = self.av
         if self.context is None:
             self.context = av.CodecContext.create(codec_of(msg, self.where), "r")
         data = bytes(as_bytes(msg.data))

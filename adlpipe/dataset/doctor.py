@@ -60,13 +60,15 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
                  "max_frame_gap_s": float(dt.max()) if len(dt) else 0.0,
                  "max_frame_gap_at_s": float(t[int(dt.argmax())]) if len(dt) else 0.0}
     fig.update(_frozen(fr["rgb"], t))
-    fig.update(_sync(g, t))
-    fig.update(_motion(g["series/ee_t"][()], g["series/ee_pos"][()], duration, limits))
+    ee_t, ee_pos = g["series/ee_t"][()], g["series/ee_pos"][()]  # read once for every check below
+    fig.update(_sync(g, t, ee_t))
+    fig.update(_motion(ee_t, ee_pos, duration, limits))
     crossings = gripper_crossings(fr["gripper"][()])
     fig["gripper_events"] = None if crossings is None else len(crossings)
     fig["gripper_chatter"] = chatter(t, crossings, limits.chatter_s)
-    fig.update(joint_figures(g, json.loads(g.attrs.get("topic_map", "{}") or "{}").get("gripper_joint")))
-    fig.update(action_figures(g))
+    fig.update(joint_figures(g, json.loads(g.attrs.get("topic_map", "{}") or "{}").get("gripper_joint"), ee_t,
+                             ee_pos))
+    fig.update(action_figures(g, ee_t, ee_pos))
     fig["non_finite"] = non_finite_notes(g)
     fig["depth_holes"] = _depth_holes(fr)
     fig["bridged_tf_gap"] = "bridged" in str(g.attrs.get("note", ""))
@@ -100,11 +102,11 @@ def _nearest_gap(t: np.ndarray, stamps: np.ndarray) -> np.ndarray:
     return np.abs(stamps[nearest_index(t, stamps, np.inf)] - t)
 
 
-def _sync(g: h5py.Group, t: np.ndarray) -> dict:
+def _sync(g: h5py.Group, t: np.ndarray, ee_t: np.ndarray) -> dict:
     """Sync residuals of the other streams against the camera frames: the largest time from a frame to the
     nearest end-effector tf sample, joint state and (for frames that have one) its depth image."""
     fr = g["frames"]
-    out = {"sync_tf_s": float(_nearest_gap(t, g["series/ee_t"][()]).max()) if len(t) else 0.0}
+    out = {"sync_tf_s": float(_nearest_gap(t, ee_t).max()) if len(t) else 0.0}
     joint_t = g["series/joint_t"][()]
     out["sync_joints_s"] = float(_nearest_gap(t, joint_t).max()) if len(joint_t) and len(t) else None
     if "depth_index" in fr and len(fr["depth_t"]):

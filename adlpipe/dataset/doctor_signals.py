@@ -37,10 +37,10 @@ def _longest_still_run(t: np.ndarray, x: np.ndarray) -> tuple[float, float]:
     return float(t[starts[k]]), float(t[ends[k]])
 
 
-def joint_figures(g: h5py.Group, gripper: str | None) -> dict:
+def joint_figures(g: h5py.Group, gripper: str | None, ee_t: np.ndarray, ee_pos: np.ndarray) -> dict:
     """The largest one-sample joint spike (the value minus its 3-sample median, against the joint's own range) and
     the longest flatline of an arm joint (the gripper is left out: it rests for long stretches), with the end
-    effector's motion meanwhile."""
+    effector's motion meanwhile (ee_t, ee_pos: its tf samples)."""
     s = g["series"]
     t, q = s["joint_t"][()], s["joint_pos"][()]
     names = [str(n) for n in s["joint_pos"].attrs.get("joint_names", [])]
@@ -48,7 +48,6 @@ def joint_figures(g: h5py.Group, gripper: str | None) -> dict:
            "joint_flat_s": 0.0, "joint_flat_joint": None, "joint_flat_moved_m": 0.0}
     if len(t) < 5 or q.ndim != 2:
         return out
-    ee_t, ee_pos = s["ee_t"][()], s["ee_pos"][()]
     for j, name in enumerate(names[:q.shape[1]]):
         x = q[:, j]
         span = float(np.percentile(x, 99) - np.percentile(x, 1))
@@ -67,14 +66,14 @@ def joint_figures(g: h5py.Group, gripper: str | None) -> dict:
     return out
 
 
-def action_figures(g: h5py.Group) -> dict:
+def action_figures(g: h5py.Group, ee_t: np.ndarray, ee_pos: np.ndarray) -> dict:
     """The longest stretch over which the action stream repeats one value, and how far the end effector moved
     meanwhile (a command frozen while the arm moves is a stale publisher)."""
     fr = g["frames"]
     if "action_stream" not in fr or len(fr["action_stream"]) < 2:
         return {"action_frozen_s": None, "action_frozen_moved_m": None}
     t0, t1 = _longest_still_run(fr["action_stream_t"][()], fr["action_stream"][()])
-    moved = _path_moved(g["series/ee_t"][()], g["series/ee_pos"][()], t0, t1)
+    moved = _path_moved(ee_t, ee_pos, t0, t1)
     return {"action_frozen_s": t1 - t0, "action_frozen_at_s": t0, "action_frozen_moved_m": moved}
 
 

@@ -337,9 +337,11 @@ def _synced(images: h5py.Dataset, index: np.ndarray, blank: np.ndarray) -> Itera
 
 
 def _counted(frames: Iterable[np.ndarray], moments: Moments, scale: float) -> Iterator[np.ndarray]:
-    """The frames, passed on one at a time, their per-channel statistics into `moments` (as _image_column)."""
+    """The frames, passed on one at a time, their per-channel statistics (values / scale; at most ~4,096 pixels a
+    frame) into `moments`."""
     for image in frames:
-        moments.add(image.reshape(-1, 3)[:: max(1, image.size // 3 // 4096)] / scale)
+        channels = image.shape[2] if image.ndim == 3 else 1
+        moments.add(image.reshape(-1, channels)[:: max(1, image.size // channels // 4096)] / scale)
         yield image
 
 
@@ -365,13 +367,9 @@ def dataset_card(info: dict) -> str:
 
 
 def _image_column(frames: Iterable[np.ndarray], scale: float) -> tuple[list[dict], Moments]:
-    """PNG structs of the frames and their per-channel statistics (values / scale; at most ~4,096 pixels a frame)."""
-    column, moments = [], Moments()
-    for image in frames:
-        column.append(png(image))
-        channels = image.shape[2] if image.ndim == 3 else 1
-        moments.add(image.reshape(-1, channels)[:: max(1, image.size // channels // 4096)] / scale)
-    return column, moments
+    """PNG structs of the frames and their per-channel statistics (as _counted)."""
+    moments = Moments()
+    return [png(image) for image in _counted(frames, moments, scale)], moments
 
 
 def write_tasks(path: Path, tasks: list[str]) -> None:
