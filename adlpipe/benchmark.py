@@ -187,6 +187,8 @@ def table(bench: Benchmark, rows: dict, refs: dict, episodes: int, execute: int,
              "success rate. Checkpoint best: the lowest validation error; last: the final one.", "",
              head, "| --- | ---: | --- | ---: | ---: | ---: |" + (" ---: |" if per_task else "")]
     for name, r in refs.items():
+        if r["n"] < episodes:  # --reference-episodes
+            name += f", first {r['n']} initial conditions"
         lines.append(f"| {name} (reference) | | | {_score_cell(r)} | {_success_cell(r)} | |"
                      + (f" {_tasks_cell(r)} |" if per_task else ""))
     for (model, steps, ck), r in rows.items():
@@ -307,6 +309,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="sampling steps along the curve (default 16; BC: its one prediction)")
     p.add_argument("--curve-episodes", type=int_range(1, 100_000),
                    help="initial conditions per checkpoint (default: --episodes)")
+    p.add_argument("--reference-episodes", type=int_range(1, 100_000),
+                   help="run the references on the first this many initial conditions only (default: --episodes; "
+                   "Push-T's demonstrator plans each push for seconds)")
     p.add_argument("--metrics", type=Path, help="default: metrics/<env>.json")
     p.add_argument("--details", type=Path, help="default: metrics/<env>_details.json")
     p.add_argument("--table", type=Path, help="default: reports/<env>.md")
@@ -366,7 +371,8 @@ def run_episodes(args: argparse.Namespace, bench: Benchmark, jobs: list[tuple],
             per.setdefault((label, steps, ck), []).append(episode)
         for label, step, steps, episode in pool.map(_episode, curve_jobs):
             along.setdefault((label, steps), {}).setdefault(step, []).append(episode)
-        ref_jobs = [(args.env, kind, args.seed + i) for kind in bench.sim().REFERENCES for i in range(args.episodes)]
+        ref_jobs = [(args.env, kind, args.seed + i) for kind in bench.sim().REFERENCES
+                    for i in range(min(args.reference_episodes or args.episodes, args.episodes))]
         for kind, episode in pool.map(_reference, ref_jobs):
             ref_eps.setdefault(kind, []).append(episode)
     return per, along, ref_eps

@@ -78,7 +78,8 @@ def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path
     assert ref["ema"]["encoder.stem.0.weight"].shape[1] == 4  # one frame's channels per encoder pass
     out = tmp_path / "out"
     run_module("benchmark", "--models", tmp_path / "fm_cnn", tmp_path / "bc_cnn", "--steps", "2", "--episodes", "2",
-               "--metrics", out / "m.json", "--details", out / "d.json", "--table", out / "t.md", check=True)
+               "--reference-episodes", "1", "--metrics", out / "m.json", "--details", out / "d.json",
+               "--table", out / "t.md", check=True)
     details = json.loads((out / "d.json").read_text())
     rows = {(r["model"], r["steps"], r["checkpoint"]): r for r in details["results"]}
     assert set(rows) == {(m, s, ck) for m, s in (("fm_cnn", 2), ("bc_cnn", 1)) for ck in ("best", "last")}
@@ -101,7 +102,9 @@ def test_train_on_actions_and_run_the_benchmark(pusht_data: Path, tmp_path: Path
     assert len(across.splitlines()) == 28  # 8 rows
     assert "- d:fm_cnn-2 vs again:fm_cnn-2: score +0.000 [+0.000, +0.000]" in across
     assert "not a benchmark details file" in one_line_error(run_module("benchmark", "--compare", out / "t.md"))
-    refs = details["references"]
+    refs = details["references"]  # on the first initial condition only (--reference-episodes 1), and said so
+    assert [e["seed"] for e in refs["demonstrator"]["per_episode"]] == [100_000] and refs["demonstrator"]["n"] == 1
+    assert "| demonstrator, first 1 initial conditions (reference) |" in (out / "t.md").read_text()
     assert refs["demonstrator"]["success"] == 1.0 and refs["demonstrator"]["score"] > 0.95
     assert refs["no action"]["success"] == 0.0 and refs["no action"]["score"] < 0.9
     # the first-frame stages refuse a closed-loop policy in one line

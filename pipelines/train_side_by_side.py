@@ -1,13 +1,16 @@
-"""Run the study's training stages two at a time, one thread each, then record them in dvc.lock.
+"""Run a pipeline's training stages two at a time, one thread each, then record them in dvc.lock.
 
-    cd pipelines/study && dvc repro split && python train_side_by_side.py && dvc repro
-    python train_side_by_side.py train_seeds train_closed_loop     # only these stages (names or their prefixes)
+    cd pipelines/study && dvc repro split && python ../train_side_by_side.py && dvc repro
+    python ../train_side_by_side.py train_seeds train_closed_loop     # only these stages (names or their prefixes)
+
+Any pipeline under pipelines/ whose training stages are named train@..., train_closed_loop@... or train_seeds@...
+(pipelines/study, pipelines/pusht_levers).
 
 `dvc repro` runs one stage at a time; on 2 cores two one-thread trainings side by side finish sooner than two
 two-thread trainings in turn. This runs each training stage's own command (as DVC renders it from dvc.yaml and
-params.yaml, so the models are exactly what `dvc repro` would train), the seed-0 models first, and `dvc commit`s
-each stage that finished; the `dvc repro` after it skips them. A stage already up to date is not run again; a
-killed run resumes each training from its last checkpoint (adlpipe.train).
+params.yaml, so the models are exactly what `dvc repro` would train), the stages in ORDER and then as dvc.yaml
+lists them, and `dvc commit`s each stage that finished; the `dvc repro` after it skips them. A stage already up to
+date is not run again; a killed run resumes each training from its last checkpoint (adlpipe.train).
 """
 
 from __future__ import annotations
