@@ -18,7 +18,6 @@ broken down by the part of the task's predicate that failed, the force on the pe
 
 from __future__ import annotations
 
-import csv
 import io
 import math
 import os
@@ -40,6 +39,7 @@ from .evaluation.tables import (
     replay_label,
     share_cell,
 )
+from .evaluation.training_log import read_training_log
 from .policy.blind import BLIND
 from .stats import paired_difference, paired_success, rate_cell
 
@@ -284,21 +284,6 @@ def convergence_lines(ev: dict) -> list[str]:
     return lines
 
 
-def _read_log(path: Path) -> dict[str, list[float]]:
-    """A training log's columns as numbers (empty cells NaN); a log that is not such a CSV is one line."""
-    cols: dict[str, list[float]] = {}
-    try:
-        with open(path, newline="") as f:
-            for r in csv.DictReader(f):
-                for k, v in r.items():
-                    cols.setdefault(str(k), []).append(float(v) if v not in ("", None, "None") else math.nan)
-    except (OSError, UnicodeDecodeError, csv.Error, ValueError, TypeError) as exc:
-        raise AdlError(f"{path}: not a training log CSV ({type(exc).__name__}: {str(exc)[:80]})") from None
-    if not {"epoch", "train_loss"} <= set(cols):
-        raise AdlError(f"{path}: not a training log CSV (no epoch and train_loss columns)")
-    return cols
-
-
 def headline_lines(ev: dict, rp: dict) -> list[str]:
     """One row per model, before the detail: its default sampler's error with intervals on the best checkpoint,
     its latency, whether it converged and its open-loop success (replay) when there is one."""
@@ -367,7 +352,7 @@ def figures(ev: dict, read: dict[str, dict[str, list[float]]], out_dir: Path) ->
     """The seed's Fig. 2 (train/test loss FM vs DP, one panel each: their losses are of different objectives),
     val px vs epoch, px and ms vs steps (all models on a log axis, and beside it the models within 3x of the best on
     a linear one, so one far-off model does not hide the others' differences), as PNG files. read: each model's
-    training log columns (_read_log)."""
+    training log columns (read_training_log)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -477,7 +462,7 @@ def main(argv: list[str] | None = None) -> int:
         raise AdlError(f"{args.eval} / {args.replay}: not evaluate/replay detail files (no 'models' / 'success')")
     compared = claims(ev, rp)
     logs = {m: args.train_logs / f"{m}.csv" for m in ev["models"]}
-    read = {m: _read_log(p) for m, p in logs.items() if p.exists()}  # a log that cannot be read is named first
+    read = {m: read_training_log(p) for m, p in logs.items() if p.exists()}  # a log that cannot be read is named first
     usable = [m for m in ev["models"] if default_row(ev, m) is not None] if isinstance(ev["models"], dict) else []
     if not usable or not isinstance(rp["success"], dict) or not rp["success"]:
         what = args.eval if not usable else args.replay
