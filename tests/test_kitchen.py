@@ -87,7 +87,7 @@ def test_state_only_policies_train_and_run_the_kitchen_benchmark(kitchen_data: P
     out = tmp_path / "out"
     run_module("benchmark", "--env", "kitchen", "--models", *(tmp_path / m for m in ("fm_cnn", "dp_cnn", "bc_cnn")),
                "--steps", "2", "--dp-sampler", "ddim_trailing", "--checkpoints", "last", "--episodes", "1",
-               "--metrics", out / "m.json",
+               "--max-steps", "12", "--metrics", out / "m.json",
                "--details", out / "d.json", "--table", out / "t.md", check=True)
     details = json.loads((out / "d.json").read_text())
     rows = {(r["model"], r["steps"], r["checkpoint"]): r for r in details["results"]}
@@ -97,9 +97,11 @@ def test_state_only_policies_train_and_run_the_kitchen_benchmark(kitchen_data: P
         assert e["seed"] == 100_000 and set(e["tasks"]) <= set(kitchen.TASKS)
         assert e["score"] == len(e["tasks"]) / 4 and e["success"] == (len(e["tasks"]) == 4)
         assert set(r["tasks"]) == set(kitchen.TASKS) and r["n"] == 1
+        assert e["plans"] == 2  # --max-steps 12 at Ta 8: the second plan is cut after 4 of its actions
     demo = details["references"]["demonstrator"]
     assert demo["score"] == 1.0 and demo["tasks"] == {t: 1.0 for t in kitchen.TASKS}  # seed 100000: all four
     table = (out / "t.md").read_text()
+    assert details["max_steps"] == 12 and "at most 12 steps (the environment's limit is 280" in table
     assert "| fm_cnn | 2 | last |" in table and "microwave / kettle / light switch / slide cabinet" in table
 
 
