@@ -174,14 +174,14 @@ def _success_cell(r: dict) -> str:
     return f"{r['success']:.0%} [{100 * lo:.0f}, {100 * hi:.0f}]"
 
 
-def table(bench: Benchmark, rows: dict, refs: dict, episodes: int, execute: int, first_seed: int,
-          curves: dict | None = None, max_steps: int | None = None) -> str:
+def table(bench: Benchmark, rows: dict, refs: dict, episodes: int, execute: int, first_seed: int, max_steps: int,
+          curves: dict | None = None) -> str:
     """The Table 2 replica: references, then one row per model, sampling steps and checkpoint; with curves, the
     seed's two columns over the checkpoints along training."""
     per_task = bool(bench.tasks)
-    limit = f"at most {max_steps or bench.max_steps} steps" + (
-        f" (the environment's limit is {bench.max_steps}: policies given more time)."
-        if max_steps not in (None, bench.max_steps) else ".")
+    limit = f"at most {max_steps} steps" + (
+        f" (the environment's limit is {bench.max_steps}: policies given more time)." if max_steps != bench.max_steps
+        else ".")
     head = "| model | steps | checkpoint | score [95 %] | success [95 %] | ms per plan |"
     if per_task:
         head += f" {' / '.join(bench.tasks)} |"
@@ -352,17 +352,17 @@ def compare(paths: list[Path]) -> None:
 def episode_jobs(args: argparse.Namespace, bench: Benchmark) -> tuple[list[tuple], list[tuple]]:
     """(every model's episodes at each step count and checkpoint, those of its checkpoints along training)."""
     jobs, curve_jobs = [], []
-    limit = args.max_steps or bench.max_steps
     for d, name in zip(args.models, model_labels(args.models), strict=True):
         cfg = check_model(d, bench)
         method = args.dp_sampler if MODELS[cfg["model"]][0].startswith("ddpm") else None
         bc = cfg["model"].startswith("bc_")
         for steps in ([1] if bc else args.steps):
-            jobs += [(args.env, name, ck, str(d / CHECKPOINTS[ck]), steps, method, args.seed + i, args.execute, limit)
-                     for ck in args.checkpoints for i in range(args.episodes)]
+            jobs += [(args.env, name, ck, str(d / CHECKPOINTS[ck]), steps, method, args.seed + i, args.execute,
+                      args.max_steps) for ck in args.checkpoints for i in range(args.episodes)]
         if args.curve:
             steps = 1 if bc else args.curve_steps
-            curve_jobs += [(args.env, name, n, str(path), steps, method, args.seed + i, args.execute, limit)
+            curve_jobs += [(args.env, name, n, str(path), steps, method, args.seed + i, args.execute,
+                            args.max_steps)
                            for n, path in curve_checkpoints(d)
                            for i in range(args.curve_episodes or args.episodes)]  # checkpoint: its step
     return jobs, curve_jobs
@@ -392,6 +392,7 @@ def main(argv: list[str] | None = None) -> int:
         compare(args.compare)
         return 0
     bench = BENCHMARKS[args.env]
+    args.max_steps = args.max_steps or bench.max_steps  # the environment's limit unless --max-steps
     metrics = args.metrics or Path(f"metrics/{args.env}.json")
     details = args.details or Path(f"metrics/{args.env}_details.json")
     table_path = args.table or Path(f"reports/{args.env}.md")
@@ -410,13 +411,13 @@ def main(argv: list[str] | None = None) -> int:
     write_all_atomic({
         metrics: json_text(headline),
         details: json_text({"env": args.env, "episodes": args.episodes, "first_seed": args.seed,
-                            "execute": args.execute, "max_steps": args.max_steps or bench.max_steps,
+                            "execute": args.execute, "max_steps": args.max_steps,
                             "results": [{"model": m, "steps": s, "checkpoint": ck, **r, "per_episode": per[(m, s, ck)]}
                                         for (m, s, ck), r in rows.items()],
                             "curves": [{"model": m, "steps": s, "episodes": args.curve_episodes or args.episodes, **c}
                                        for (m, s), c in curves.items()],
                             "references": {k: {**refs[k], "per_episode": ref_eps[k]} for k in refs}}),
-        table_path: table(bench, rows, refs, args.episodes, args.execute, args.seed, curves, args.max_steps)})
+        table_path: table(bench, rows, refs, args.episodes, args.execute, args.seed, args.max_steps, curves)})
     if plot_path:
         plot_curves(curves, refs, plot_path, bench.title)
     for (m, s, ck), r in rows.items():
