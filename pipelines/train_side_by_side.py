@@ -3,8 +3,8 @@
     cd pipelines/study && dvc repro split && python ../train_side_by_side.py && dvc repro
     python ../train_side_by_side.py train_seeds train_closed_loop     # only these stages (names or their prefixes)
 
-Any pipeline under pipelines/ whose training stages are named train@..., train_closed_loop@..., train_seeds@... or
-train_long@... (pipelines/study, pipelines/pusht_levers, pipelines/kitchen_levers).
+Any pipeline under pipelines/ whose training stages are named train@..., train_closed_loop@..., train_seeds@...,
+train_long@... or train_reg@... (pipelines/study, pipelines/pusht_levers, pipelines/kitchen_levers).
 
 `dvc repro` runs one stage at a time; on 2 cores two one-thread trainings side by side finish sooner than two
 two-thread trainings in turn. This runs each training stage's own command (as DVC renders it from dvc.yaml and
@@ -23,7 +23,7 @@ from pathlib import Path
 
 from dvc.repo import Repo
 
-ORDER = ("train@", "train_closed_loop@", "train_seeds@", "train_long@")
+ORDER = ("train@", "train_closed_loop@", "train_seeds@", "train_long@", "train_reg@")
 SIDE_BY_SIDE = 2
 
 
