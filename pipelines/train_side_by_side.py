@@ -3,8 +3,8 @@
     cd pipelines/study && dvc repro split && python ../train_side_by_side.py && dvc repro
     python ../train_side_by_side.py train_seeds train_closed_loop     # only these stages (names or their prefixes)
 
-Any pipeline under pipelines/ whose training stages are named train@..., train_closed_loop@..., train_seeds@...,
-train_long@... or train_reg@... (pipelines/study, pipelines/pusht_levers, pipelines/kitchen_levers).
+Any pipeline under pipelines/ whose training stages are foreach stages named train...@... (train@, train_state@,
+train_closed_loop@, train_seeds@, train_reg@: pipelines/study, pipelines/pusht, pipelines/pusht_levers, ...).
 
 `dvc repro` runs one stage at a time; on 2 cores two one-thread trainings side by side finish sooner than two
 two-thread trainings in turn. This runs each training stage's own command (as DVC renders it from dvc.yaml and
@@ -23,16 +23,20 @@ from pathlib import Path
 
 from dvc.repo import Repo
 
-ORDER = ("train@", "train_closed_loop@", "train_seeds@", "train_long@", "train_reg@")
+ORDER = ("train@", "train_closed_loop@", "train_seeds@")  # run first, in this order; other train...@ stages after
 SIDE_BY_SIDE = 2
 
 
-def stale_training_stages(repo: Repo, wanted: tuple[str, ...] = ORDER) -> list:
-    """The training stages named by `wanted` (names or prefixes) that are not up to date, in ORDER."""
+def is_training(name: str) -> bool:
+    return "@" in name and name.startswith("train")
+
+
+def stale_training_stages(repo: Repo, wanted: tuple[str, ...] = ("train",)) -> list:
+    """The training stages named by `wanted` (names or prefixes) that are not up to date, in ORDER, then as
+    dvc.yaml lists them."""
     stale = set(repo.status())  # names of the stages whose deps, params or outs changed
-    stages = [s for s in repo.index.stages
-              if s.name.startswith(ORDER) and s.name.startswith(wanted) and s.name in stale]
-    return sorted(stages, key=lambda s: next(i for i, p in enumerate(ORDER) if s.name.startswith(p)))
+    stages = [s for s in repo.index.stages if is_training(s.name) and s.name.startswith(wanted) and s.name in stale]
+    return sorted(stages, key=lambda s: next((i for i, p in enumerate(ORDER) if s.name.startswith(p)), len(ORDER)))
 
 
 def run(stage, logs: Path) -> tuple[str, int, float]:  # noqa: ANN001 - a dvc Stage
@@ -44,7 +48,7 @@ def run(stage, logs: Path) -> tuple[str, int, float]:  # noqa: ANN001 - a dvc St
 
 def main(argv: list[str]) -> int:
     repo = Repo(".")
-    stages = stale_training_stages(repo, tuple(argv) or ORDER)
+    stages = stale_training_stages(repo, tuple(argv) or ("train",))
     logs = Path("logs")
     logs.mkdir(exist_ok=True)
     print(f"{len(stages)} training stage(s) to run, {SIDE_BY_SIDE} at a time: {', '.join(s.name for s in stages)}")
