@@ -125,7 +125,7 @@ def _record_one(job: tuple) -> tuple[str, int, bool]:
 
 def _seeded_world(name: str) -> object:
     """The module of a seeded benchmark world (make_env, record)."""
-    from .sim import kitchen, pusht
+    from .envs import kitchen, pusht
 
     return {"pusht": pusht, "kitchen": kitchen}[name]
 

@@ -22,7 +22,9 @@ from pathlib import Path
 from .atomic import atomic_path, write_text_atomic
 from .cli import Parser
 from .errors import AdlError, read_json_object, run_cli
+from .evaluation.claims import claims
 from .evaluation.outcomes import breakdown_lines
+from .evaluation.sections import grasp_tasks
 from .evaluation.tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
 from .stats import rate_cell
 
@@ -118,7 +120,6 @@ def tables(results: Path) -> dict[str, str]:
     """name -> the markdown README shows between its marks."""
     run = results / "default"
     ev, rp = _load(run / RUN_FILES[0]), _load(run / RUN_FILES[1])
-    from .report import grasp_tasks
 
     out = {"default": default_table(ev, rp), "blind": blind_lines(ev, rp),
            "per-task": per_task_lines(ev, rp, grasp_tasks()),
@@ -138,7 +139,6 @@ def tables(results: Path) -> dict[str, str]:
 def study_tables(study: Path) -> dict[str, list[str]]:
     """The study's tables (pipelines/study, kept in results/study): every model, blind, per task, the paper's
     claims, the seeds and the closed loop."""
-    from .report import claims, grasp_tasks
 
     ev, rp = _load(study / "eval_details.json"), _load(study / "replay_details.json")
     out = {"study": default_table(ev, rp), "study-blind": blind_lines(ev, rp),

@@ -21,7 +21,7 @@ from conftest import REPO, copy_dataset, one_line_error
 
 from adlpipe.errors import run_cli
 from adlpipe.policy.models import ModelConfig
-from adlpipe.train import train
+from adlpipe.training.loop import train
 
 TINY = dict(image_size=32, encoder_width=8, obs_dim=16, down_dims=(16, 32, 64), d_model=32, n_layers=1, n_heads=2)
 

@@ -205,7 +205,7 @@ def test_a_model_sees_both_cameras_and_evaluate_scores_each(tmp_path: Path) -> N
     wrist = row["px_by_camera"]["wrist"]
     assert wrist["n"] == 2 and wrist["px_ci"][0] <= wrist["px"] <= wrist["px_ci"][1] and wrist["px"] > 0
     assert "wrist px [95 %]" in (tmp_path / "t.md").read_text()
-    from adlpipe.evaluate import camera_px, other_views
+    from adlpipe.evaluation.accuracy import camera_px, other_views
 
     with h5py.File(data) as f:
         views = other_views(f, names)

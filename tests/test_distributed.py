@@ -13,7 +13,7 @@ import pytest
 
 from adlpipe.policy.checkpoint import load_checkpoint
 from adlpipe.policy.models import ModelConfig, preset
-from adlpipe.train import train
+from adlpipe.training.loop import train
 
 TINY = dict(image_size=32, encoder_width=8, obs_dim=16, down_dims=(16, 32, 64), d_model=32, n_layers=1, n_heads=2)
 # Measured: 2 processes and 1 agree to 1e-7 relative (the gradient average differs from the global mean only in

@@ -14,7 +14,7 @@ from conftest import one_line_error, record_seeded_world, run_module
 from adlpipe.dataset import schema
 from adlpipe.geometry import project
 
-kitchen = pytest.importorskip("adlpipe.sim.kitchen")
+kitchen = pytest.importorskip("adlpipe.envs.kitchen")
 
 
 @pytest.fixture(scope="module")

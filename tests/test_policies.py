@@ -13,7 +13,7 @@ from adlpipe.errors import AdlError
 from adlpipe.policy.checkpoint import load_checkpoint, load_policy
 from adlpipe.policy.models import MODELS, ModelConfig, Policy
 from adlpipe.policy.objectives import DDPM, FlowMatching, Noise, interpolate, squaredcos_cap_v2, velocity_from_x1
-from adlpipe.train import train
+from adlpipe.training.loop import train
 
 TINY = dict(image_size=32, encoder_width=8, obs_dim=16, down_dims=(16, 32, 64), d_model=32, n_layers=1, n_heads=2)
 
@@ -319,7 +319,7 @@ def test_checkpoints_never_unpickle_code(tmp_path: Path) -> None:
 def test_a_flat_but_far_worse_baseline_is_no_finding() -> None:
     """DP flat at 21.6 px as the schedule ends, where BC on the same U-Net has 2.2 px: the curve says converged,
     the comparison says undertrained, and the report states no claim on it; a DP near BC is a finding."""
-    from adlpipe.report import claims
+    from adlpipe.evaluation.claims import claims
 
     def ev(dp_px: float) -> dict:
         rows = {"fm_cnn": {"euler/1": 2.14, "euler/16": 2.07}, "dp_cnn": {"ddpm/16": dp_px},
@@ -345,7 +345,7 @@ def test_claims_rest_on_the_paired_interval_of_per_episode_errors() -> None:
     with the episodes that would resolve it."""
     import numpy as np
 
-    from adlpipe.report import claims
+    from adlpipe.evaluation.claims import claims
 
     rng = np.random.default_rng(0)
     base = rng.uniform(1.5, 3.0, 40)  # per-episode difficulty, shared by both models: what pairing removes

@@ -19,7 +19,7 @@ def test_the_demonstrator_pushes_the_t_onto_the_goal(pusht_data: Path) -> None:
     """Every seeded initial condition ends above gym-pusht's 0.95 coverage within its 300 steps (measured on seeds
     0-9: 0.95-0.98 in 129-249 steps): the recorder's own verdict on the fixture's seeds 0-3 (one attempt each), and
     seed 0 step by step."""
-    from adlpipe.sim.pusht import demonstrate, make_env
+    from adlpipe.envs.pusht import demonstrate, make_env
 
     assert "recorded 4 episodes" in (pusht_data / "record.txt").read_text()
     assert "(0 without a successful demo)" in (pusht_data / "record.txt").read_text()
@@ -144,7 +144,7 @@ def test_the_state_variant_records_trains_from_memory_and_curves(pusht_data: Pat
 
     from adlpipe.dataset.loader import WindowDataset, Windows, compute_action_stats
     from adlpipe.dataset.memory_windows import MemoryBatches
-    from adlpipe.sim.pusht import keypoint_state, make_env
+    from adlpipe.envs.pusht import keypoint_state, make_env
 
     data = tmp_path / "state.h5"
     run_module("ingest", *sorted((pusht_data / "bags").glob("*.mcap")), "-o", data, "--size", "48", "--config",
@@ -204,7 +204,7 @@ def test_the_state_variant_records_trains_from_memory_and_curves(pusht_data: Pat
 
 def test_two_model_folders_of_one_name_get_rows_of_their_own() -> None:
     """The same model trained with two encoders (models/fm_cnn, models/refenc/fm_cnn) in one benchmark table."""
-    from adlpipe.benchmark import model_labels
+    from adlpipe.evaluation.benchmark_runs import model_labels
 
     dirs = [Path("models/fm_cnn"), Path("models/refenc/fm_cnn"), Path("models/bc_cnn")]
     assert model_labels(dirs) == ["models/fm_cnn", "refenc/fm_cnn", "bc_cnn"]

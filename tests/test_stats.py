@@ -85,8 +85,8 @@ def test_report_figures_tell_every_series_apart_and_label_the_steps() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from adlpipe.evaluation.figures import label_steps, model_styles
     from adlpipe.policy.models import MODELS
-    from adlpipe.report import label_steps, model_styles
 
     styles = model_styles(sorted(MODELS))
     assert len({s["color"] for s in styles.values()}) == len(MODELS)

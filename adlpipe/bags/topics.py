@@ -18,7 +18,7 @@ class TopicMap:
     affordance: str | None = "/adl/affordance"  # 32FC1 image; optional (null: no affordance map)
     joints: str | None = "/joint_states"
     # A policy's own state and action streams (sensor_msgs/JointState, position field), kept per frame: joint-space
-    # policies and Push-T (adlpipe/sim/pusht.py). Optional: null, or absent from a bag, means none. The ADL world
+    # policies and Push-T (adlpipe/envs/pusht.py). Optional: null, or absent from a bag, means none. The ADL world
     # publishes its arm's command on `action`: the commanded tcp position (x, y, z in base_frame) and the gripper
     # command, the stream closed-loop ADL policies learn (train --closed-loop --target command).
     state: str | None = None

@@ -361,8 +361,8 @@ def record(seed: int, size: int = 64) -> object:
     image, the robot's 9 joints, the end-effector site as tf, the kettle's pose, the 59-D observation as the state
     and the 9-D joint-velocity action, all at the control rate. success: all four tasks done."""
     from ..geometry import matrix_to_quat
-    from .episode import Streams
-    from .world import SceneSpec
+    from ..sim.episode import Streams
+    from ..sim.world import SceneSpec
 
     env = make_env()
     u = env.unwrapped

@@ -210,8 +210,8 @@ def record(seed: int, size: int = 96) -> object:
     rendered image, the agent as end effector and as the state (x, y in pixels), the keypoint state (keypoint_state,
     the low-dimensional observation), the action (the target position), the T block's pose as an object, all at the
     control rate."""
-    from .episode import Streams
-    from .world import SceneSpec
+    from ..sim.episode import Streams
+    from ..sim.world import SceneSpec
 
     K, T = camera_model(size)
     st = Streams(TASK, SceneSpec(task=TASK, poses={}), size, size, K, T, joint_names=["agent_x", "agent_y"],

@@ -1,0 +1,219 @@
+"""The one training loop every model shares: optimiser, schedule and EMA; an epoch of steps; the checkpoint a killed
+run resumes from; the per-epoch log; and the finished run's files."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import torch
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from ..atomic import atomic_path, write_json_atomic
+from ..dataset.loader import OPEN_FILES, Augment, Normalizer
+from ..dataset.sampling import EpochSampler, TrainingSamples
+from ..dataset.splits import load_split
+from ..errors import AdlError
+from ..policy.checkpoint import load_checkpoint, save_atomic
+from ..policy.models import ModelConfig, Policy
+from ..policy.objectives import Noise
+from ..policy.optim import ADAMW_BETAS, EMA, WARMUP_STEPS, cosine_with_warmup
+from ..runtime import Ranks, all_sum, autocast, barrier, to_device
+from .data import datasets, training_batches, training_episodes
+from .validation import final_metrics, measure, validation_set
+
+LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "val_px", "lr", "seconds"]
+
+
+def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int, batch_size: int = 32,
+          lr: float = 1e-4, weight_decay: float = 1e-6, warmup_steps: int = WARMUP_STEPS, grad_clip: float = 1.0,
+          seed: int = 0, log_csv: Path | None = None, progress: bool = False, stop_after_epoch: int | None = None,
+          val_fraction: float = 0.1, val_every: int = 5, augment: bool = True, workers: int = 0,
+          device: torch.device | None = None, precision: str = "fp32", ranks: Ranks | None = None,
+          windows_per_epoch: str = "episodes", save_every: int = 0, open_files: int = OPEN_FILES,
+          resume_dir: Path | None = None) -> dict:
+    """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests).
+    resume_dir: where a run in progress keeps its checkpoints (default: out; see publish). batch_size is the global
+    batch: under torchrun (ranks) each process takes batch_size / world of it; rank 0
+    validates, logs and writes the checkpoints. save_every: also keep the EMA weights of every this many epochs
+    in <out>/checkpoints/ (the benchmark's learning curves)."""
+    device, ranks = device or torch.device("cpu"), ranks or Ranks()
+    out.mkdir(parents=True, exist_ok=True)
+    work = resume_dir or out
+    work.mkdir(parents=True, exist_ok=True)
+    split = load_split(split_path)
+    check_run(split, split_path, batch_size, ranks)
+    train_names, val_names, stored_size = training_episodes(data, split, cfg, val_fraction, seed)
+    aug = Augment(stored_size, crop=cfg.crop) if augment else None  # windows without images skip it
+    stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed,
+                                                windows_per_epoch, open_files)
+    norm = Normalizer(stats)
+    val_obs, val_px_target = validation_set(val_ds, norm, cfg, device) if ranks.main else (None, None)
+    loader = training_batches(train_ds, cfg, batch_size, seed, workers, device, ranks)
+    test_loader = DataLoader(TrainingSamples(test_ds, seed), batch_size=batch_size,
+                             sampler=EpochSampler(len(test_ds), shuffle=False), num_workers=0)
+    steps_per_epoch = len(loader)
+    hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
+               "warmup_steps": warmup_steps, "grad_clip": grad_clip, "seed": seed, "data": str(data),
+               "split": sorted(split["train"]),
+               "val_fraction": val_fraction, "val_every": val_every, "augment": augment,
+               "windows_per_epoch": windows_per_epoch}
+
+    torch.manual_seed(seed)
+    policy, model, opt, sched, ema = optimisation(cfg, device, ranks, lr, weight_decay, warmup_steps,
+                                                  epochs * steps_per_epoch)
+    last = work / "last.pt"
+    history, start_epoch = resume(last, cfg, hparams, policy, ema, opt, sched, replace_stale=resume_dir is not None)
+    best_px = min((r["val_px"] for r in history if r.get("val_px") is not None), default=math.inf)
+
+    def inference_checkpoint(epoch: int) -> dict:
+        """What evaluate, replay and inspect load: the EMA weights with their config, stats and history."""
+        return {"ema": ema.model.state_dict(), "config": cfg.to_dict(), "stats": stats, "history": history,
+                "hparams": hparams, "epoch": epoch}
+
+    bar = tqdm(range(start_epoch, epochs), initial=start_epoch, total=epochs, desc=f"train {cfg.model}",
+               unit="epoch", file=sys.stderr, disable=None if progress and ranks.main else True)
+    for epoch in bar:
+        t0 = time.time()
+        loader.set_epoch(epoch)  # the epoch's permutation, windows, augmentation and noise: resumable exactly
+        total, n = optimise_epoch(model, policy, loader, opt, sched, ema, grad_clip, device, precision,
+                                  f"{cfg.model}: training diverged", f"epoch {epoch + 1}", last)
+        total, n = all_sum([total, n], device, ranks)
+        if ranks.main:
+            val_px, val_ci, test_loss = None, None, None
+            if (epoch + 1) % val_every == 0 or epoch + 1 == epochs:  # with validation: the test loss is for the
+                # curves, and every epoch it cost a tenth of the training time
+                test_loss, val_px, val_ci = measure(ema.model, test_loader, val_obs, val_px_target, norm, seed,
+                                                    device, precision)
+            row = {"epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "train_loss": total / n,
+                   "test_loss": test_loss, "val_px": val_px, "val_px_ci": val_ci, "lr": sched.get_last_lr()[0],
+                   "seconds": time.time() - t0}
+            history.append(row)
+            bar.set_postfix(train=f"{row['train_loss']:.4f}")
+            if val_px is not None and val_px < best_px:  # written before last.pt: a resumed run never lacks it
+                best_px = val_px
+                save_atomic(inference_checkpoint(epoch + 1), work / "best.pt")
+            if save_every and (epoch + 1) % save_every == 0:
+                save_atomic(inference_checkpoint(epoch + 1),
+                            work / "checkpoints" / f"step_{(epoch + 1) * steps_per_epoch:07d}.pt")
+            save_atomic(resumable(policy, ema, opt, sched, epoch + 1, history, cfg, hparams, stats), last)
+        barrier(ranks)  # the others wait while rank 0 validates and writes
+        if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
+            return {"interrupted_at": epoch + 1}
+    if not ranks.main:
+        return {}
+    publish(inference_checkpoint(epochs), work, out)
+    final = final_metrics(history, cfg, epochs, steps_per_epoch, len(train_names), len(val_names), ranks, device,
+                          precision)
+    write_json_atomic(out / "metrics.json", final)
+    write_log(log_csv, history)
+    return final
+
+
+def check_run(split: dict, split_path: Path, batch_size: int, ranks: Ranks) -> None:
+    if not split["train"]:
+        raise AdlError(f"{split_path}: the train split is empty")
+    if batch_size % ranks.world:
+        raise AdlError(f"--batch-size {batch_size}: the global batch must split evenly over {ranks.world} processes")
+
+
+def optimisation(cfg: ModelConfig, device: torch.device, ranks: Ranks, lr: float, weight_decay: float,
+                 warmup_steps: int, total_steps: int) -> tuple[Policy, torch.nn.Module, torch.optim.Optimizer, object,
+                                                            EMA]:
+    """(policy, the module to train: the policy, or under torchrun its DistributedDataParallel wrapper, which
+    averages the gradients over the processes in backward; AdamW, its schedule, the EMA weights)."""
+    policy = Policy(cfg).to(device)
+    model = DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None) \
+        if ranks.world > 1 else policy
+    opt = torch.optim.AdamW(policy.parameters(), lr=lr, betas=ADAMW_BETAS, weight_decay=weight_decay, fused=True)
+    return policy, model, opt, cosine_with_warmup(opt, warmup_steps, total_steps), EMA(policy)
+
+
+def optimise_epoch(model: torch.nn.Module, policy: Policy, loader: object, opt: torch.optim.Optimizer, sched: object,
+                   ema: EMA, grad_clip: float, device: torch.device, precision: str, diverged: str, when: str,
+                   last: Path) -> tuple[float, int]:
+    """One epoch of optimiser steps: (sum of the batch losses x batch sizes, samples). A non-finite gradient
+    stops training before the weights or last.pt take it (the same on every process: gradients are synchronised)."""
+    model.train()
+    total, n = 0.0, 0
+    for batch in loader:
+        obs, act, eps, u = to_device(batch, device)
+        with autocast(device, precision):
+            loss = model(obs, act, Noise(eps, u))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), grad_clip or math.inf)
+        if not torch.isfinite(grad_norm):
+            raise AdlError(f"{diverged} (loss {float(loss.detach())}, gradient norm {float(grad_norm)} in {when}); "
+                           f"the last good checkpoint is kept in {last}; try a lower --lr")
+        opt.step()
+        sched.step()
+        ema.update(policy)
+        total += loss.item() * len(act)
+        n += len(act)
+    return total, n
+
+
+def resumable(policy: Policy, ema: EMA, opt: torch.optim.Optimizer, sched: object, epoch: int, history: list[dict],
+              cfg: ModelConfig, hparams: dict, stats: dict) -> dict:
+    """last.pt: everything a killed run needs to go on exactly where it stopped."""
+    return {"model": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
+            "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch, "history": history,
+            "config": cfg.to_dict(), "hparams": hparams, "stats": stats}
+
+
+def resume(last: Path, cfg: ModelConfig, hparams: dict, policy: Policy, ema: EMA, opt: torch.optim.Optimizer,
+           sched: object, replace_stale: bool = False) -> tuple[list[dict], int]:
+    """(history, epochs done) from the checkpoint a killed run left, its state loaded into the model, EMA,
+    optimiser and schedule; ([], 0) without one. A checkpoint of other settings is one line, or (replace_stale)
+    removed with best.pt and checkpoints/ beside it."""
+    if not last.exists():
+        return [], 0
+    ck = load_checkpoint(last)
+    if (ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams) and replace_stale:
+        print(f"{last}: a checkpoint of other settings; training from scratch", file=sys.stderr)
+        for name in ("last.pt", "best.pt"):
+            (last.parent / name).unlink(missing_ok=True)
+        shutil.rmtree(last.parent / "checkpoints", ignore_errors=True)
+        return [], 0
+    if ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams:
+        raise AdlError(f"{last}: checkpoint is from other settings; remove {last.parent} (or use --restart) to retrain")
+    print(f"{last}: resuming after epoch {int(ck['epoch'])}", file=sys.stderr)
+    policy.load_state_dict(ck["model"])
+    ema.model.load_state_dict(ck["ema"])
+    ema.step = int(ck["ema_step"])
+    opt.load_state_dict(ck["optimizer"])
+    sched.load_state_dict(ck["scheduler"])
+    return list(ck["history"]), int(ck["epoch"])
+
+
+def publish(final: dict, work: Path, out: Path) -> None:
+    """A finished run's model.pt (the final EMA weights) into out, and best.pt (the last weights without a
+    validation part). A run kept in a resume folder (a DVC stage's: DVC deletes a stage's outputs before it runs it
+    again, so its checkpoints live apart) moves best.pt and checkpoints/ into out and removes the folder."""
+    save_atomic(final, out / "model.pt")
+    if not (work / "best.pt").exists():
+        save_atomic(final, work / "best.pt")
+    if work == out:
+        return
+    os.replace(work / "best.pt", out / "best.pt")
+    if (work / "checkpoints").exists():
+        shutil.rmtree(out / "checkpoints", ignore_errors=True)
+        shutil.move(work / "checkpoints", out / "checkpoints")
+    shutil.rmtree(work)
+
+
+def write_log(log_csv: Path | None, history: list[dict]) -> None:
+    """The per-epoch CSV that dvc plots reads (plain columns only)."""
+    if log_csv is not None:
+        with atomic_path(log_csv) as tmp, open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, LOG_FIELDS, extrasaction="ignore")
+            w.writeheader()
+            w.writerows(history)
