@@ -27,8 +27,6 @@ from ..stats import mean_interval, median_interval, ratio_interval
 from .metrics import commitment, waypoint_errors
 
 DEFAULTS = {name: f"{DEFAULT_METHOD[kind]}/{DEFAULT_STEPS[kind]}" for name, (kind, _net) in MODELS.items()}
-
-
 PAPER_IMAGE_PX = 224
 
 

@@ -10,8 +10,6 @@ from ..stats import paired_difference, paired_success
 from .tables import error_cell
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
-
-
 AS_ACCURATE = 0.10  # "about as accurate": FM-1 px at most 10 % above DP-16 px
 
 
