@@ -43,7 +43,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, int_range
+from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, float_range, int_range
 from .dataset import schema
 from .dataset.splits import load_split
 from .dvc_outputs import refuse_pipeline_outputs
@@ -53,6 +53,7 @@ from .evaluation.outcomes import failure_sections, failure_strips, success_table
 from .evaluation.replay import (
     camera_rate,
     closed_loop_one,
+    closed_loop_scenes,
     demonstrated_speeds,
     every_task_first,
     oracle_jobs,
@@ -82,13 +83,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--max-episodes", type=POSITIVE,
                    help="replay at most this many test episodes, taken round-robin over the tasks")
     p.add_argument("--scenes", type=NON_NEGATIVE, default=0,
-                   help="open loop: replay this many fresh scenes per task of the test split instead of the recorded "
-                   "test episodes (0, default: the recorded test split)")
+                   help="replay this many fresh scenes per task of the test split instead of the recorded test "
+                   "episodes, open or closed loop (0, default: the recorded test split)")
     p.add_argument("--scene-seed", type=SEED, default=0,
                    help="the recording seed the fresh scenes are drawn with (record --seed; default 0)")
     p.add_argument("--scene-camera-size", type=int_range(16, 2048),
                    help="the recordings' camera size in px (record --size) at which fresh scenes are rendered before "
                    "they are resized as ingest resizes (default: the dataset's stored size)")
+    p.add_argument("--scene-camera-hz", type=float_range(0.1, 120),
+                   help="the camera rate closed loop renders fresh scenes at (record --camera-hz; default: the "
+                   "recorded test episodes' median rate)")
+    p.add_argument("--moving-person", action="store_true",
+                   help="fresh scenes (--scenes) in which the person moves: the head turns and nods and the forearm "
+                   "lifts during the episode (adlpipe.sim.person; record --moving-person records such demonstrations)")
     p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1))
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--speed-profile", nargs="+", choices=["demo", "fixed"], default=["demo"],
@@ -110,8 +117,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_device_args(p, compile_option=True)
     p.add_force()
     args = p.parse_args(argv)
-    if args.scenes and args.closed_loop:
-        raise AdlError("--scenes: fresh scenes are replayed open loop; closed loop replays the recorded test split")
+    if args.moving_person and not args.scenes:
+        raise AdlError("--moving-person: the person's motion is drawn with fresh scenes; add --scenes N")
     return args
 
 
@@ -137,16 +144,18 @@ def _fresh_one(job: tuple) -> ReplayScene:
     return fresh_scene(*job)
 
 
-def fresh_scenes(args: argparse.Namespace, tasks: list[str]) -> list[ReplayScene]:
-    """args.scenes fresh scenes of each task, built in a pool (each runs the demonstrator once per draw)."""
+def fresh_scenes(args: argparse.Namespace, tasks: list[str], names: list[str]) -> list[ReplayScene]:
+    """args.scenes fresh scenes of each task, built in a pool (each runs the demonstrator once per draw), rendered
+    live in closed loop at the rate of the recorded test episodes `names` unless told."""
     from .sim.tasks import TASKS
 
     unknown = [t for t in tasks if t not in TASKS]
     if unknown:
         raise AdlError(f"--scenes: task(s) {unknown} of {args.data} are not tasks of the MuJoCo ADL world")
-    with schema.open_dataset(args.data, names=[]) as f:
+    with schema.open_dataset(args.data, names) as f:
         size, horizon = int(f.attrs["image_size"]), int(f.attrs["n_waypoints"])
-    jobs = [(t, i, args.scene_seed, args.scene_camera_size or size, size, horizon)
+        camera_hz = args.scene_camera_hz or float(np.median([camera_rate(f, n) for n in names]))
+    jobs = [(t, i, args.scene_seed, args.scene_camera_size or size, size, horizon, camera_hz, args.moving_person)
             for t in tasks for i in range(args.scenes)]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         return list(tqdm(pool.map(_fresh_one, jobs, chunksize=2), total=len(jobs), desc="scenes", unit="scene",
@@ -172,16 +181,18 @@ def open_loop_jobs(args: argparse.Namespace, split: dict, scenes: list[ReplaySce
     for label, traj in trajs.items():
         for i, s in enumerate(scenes):
             if "demo" in args.speed_profile:
-                jobs.append((label, s.name, s.task, s.object_names, s.objects, traj[i, :, 2:], s.duration_s))
+                jobs.append((label, s.name, s.task, s.object_names, s.objects, traj[i, :, 2:], s.duration_s,
+                             s.person))
             if "fixed" in args.speed_profile:
                 if s.task not in speeds:
                     raise AdlError(f"--speed-profile fixed: no training episodes of task {s.task!r}")
                 duration = max(path_length(traj[i, :, 2:]) / speeds[s.task], 1.0)
-                jobs.append((label + FIXED, s.name, s.task, s.object_names, s.objects, traj[i, :, 2:], duration))
+                jobs.append((label + FIXED, s.name, s.task, s.object_names, s.objects, traj[i, :, 2:], duration,
+                             s.person))
     return jobs, trajs
 
 
-def closed_loop_jobs(args: argparse.Namespace, eps: list, rates: list[float], checkpoint: str,
+def closed_loop_jobs(args: argparse.Namespace, scenes: list[ReplayScene], checkpoint: str,
                      placement: Placement) -> list[tuple]:
     if not args.models:
         raise AdlError("--closed-loop needs --models")
@@ -198,15 +209,13 @@ def closed_loop_jobs(args: argparse.Namespace, eps: list, rates: list[float], ch
             raise AdlError(f"{d}: sees cameras {', '.join(policy.cfg.cameras)}; the ADL world renders one "
                            "camera, so closed-loop replay cannot feed it")
         if i == 0 and args.oracle:  # in the first model's format
-            jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, args.data, eps, rates, args.oracle,
-                                args.closed_loop, placement)
+            jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, scenes, args.oracle, args.closed_loop, placement)
         for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
             for ta in args.closed_loop:
                 if ta > policy.cfg.horizon:
                     raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
                 label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}"
-                jobs += [(label, str(d), checkpoint, ep, rate, steps, ta, args.seed, placement, None)
-                         for ep, rate in zip(eps, rates, strict=True)]
+                jobs += [(label, str(d), checkpoint, sc, steps, ta, args.seed, placement, None) for sc in scenes]
     return jobs
 
 
@@ -227,19 +236,18 @@ def main(argv: list[str] | None = None) -> int:
     if args.scenes:
         with schema.open_dataset(args.data, names) as f:
             tasks = sorted({str(f[schema.EPISODES][n].attrs["task"]) for n in names})
-        scenes = fresh_scenes(args, tasks)
-        where = f"{args.scenes} fresh scenes per task (seed {args.scene_seed})"
-        jobs, trajs = open_loop_jobs(args, split, scenes, None, checkpoint, placement)
-        worker = replay_one
+        scenes = fresh_scenes(args, tasks, names)
+        person = ", the person moving" if args.moving_person else ""
+        where = f"{args.scenes} fresh scenes per task (seed {args.scene_seed}{person})"
     else:
         eps, rates = recorded_episodes(args, names)
-        scenes = [from_episode(ep) for ep in eps]
+        scenes = closed_loop_scenes(args.data, eps, rates) if args.closed_loop else [from_episode(ep) for ep in eps]
         where = "test split"
-        if args.closed_loop:
-            worker, jobs = closed_loop_one, closed_loop_jobs(args, eps, rates, checkpoint, placement)
-        else:
-            worker = replay_one
-            jobs, trajs = open_loop_jobs(args, split, scenes, names, checkpoint, placement)
+    if args.closed_loop:
+        worker, jobs = closed_loop_one, closed_loop_jobs(args, scenes, checkpoint, placement)
+    else:
+        worker = replay_one
+        jobs, trajs = open_loop_jobs(args, split, scenes, None if args.scenes else names, checkpoint, placement)
     journal = Journal(args.details, fingerprint(args, [d / checkpoint for d in args.models], split_path, args.data))
     if journal.done:
         print(f"resuming: {len(journal.done)} policies replayed before ({journal.path})")
@@ -247,7 +255,8 @@ def main(argv: list[str] | None = None) -> int:
     result = success_summary(wins)
     strips = {} if args.closed_loop else failure_strips(args.failures, scenes, trajs, diagnostics, per_episode,
                                                         args.strip)
-    kind = {"kind": "fresh", "per_task": args.scenes, "seed": args.scene_seed} if args.scenes else {"kind": "recorded"}
+    kind = ({"kind": "fresh", "per_task": args.scenes, "seed": args.scene_seed, "moving_person": args.moving_person}
+            if args.scenes else {"kind": "recorded"})
     write_all_atomic({**strips,
         args.details: json_text({"episodes": len(scenes), "checkpoint": args.checkpoint, "scenes": kind,
                                  "success": result, "tasks": {s.name: s.task for s in scenes},

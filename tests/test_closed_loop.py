@@ -82,3 +82,31 @@ def test_oracle_plans_in_the_policys_format_solve_the_scenes_at_every_ta(ingeste
     table = (tmp_path / "t.md").read_text()
     assert "## Where the failed rollouts fail" in table and "| oracle-ee/Ta-4 |" in table
     assert "| oracle-command/Ta-4 | 100 [44, 100] | 3 |" in table  # the rate, Wilson's interval and n
+
+
+@pytest.mark.parametrize("moving", [False, True], ids=["still", "moving-person"])
+def test_closed_loop_replays_fresh_scenes_with_the_oracle_at_every_ta(ingested: Path, closed_loop_model,
+                                                                      tmp_path: Path, moving: bool) -> None:
+    """Closed loop on fresh seeded scenes, rendered live as from a recorded one: the oracle's plans (the fresh
+    scene's own demonstration in the model's format) solve every scene at Ta 4, 8 and 16, with the person still and
+    with the person moving (the demonstrator tracked them); the policy runs on the same scenes, paired by name with
+    an open-loop replay of them."""
+    split, model = closed_loop_model
+    common = ["--data", ingested, "--split", split, "--scenes", "1", "--workers", "2",
+              *(["--moving-person"] if moving else [])]
+    run_module("replay", "--models", model, "--closed-loop", "4", "8", "16", "--oracle", "command", "--fm-steps", "1",
+               *common,
+               "--metrics", tmp_path / "m.json", "--details", tmp_path / "d.json", "--table", tmp_path / "t.md",
+               check=True)
+    details = json.loads((tmp_path / "d.json").read_text())
+    assert details["scenes"] == {"kind": "fresh", "per_task": 1, "seed": 0, "moving_person": moving}
+    names = set(details["tasks"])
+    assert len(names) == 3 and all(n.startswith("fresh/") for n in names)
+    for ta in (4, 8, 16):
+        assert details["success"][f"oracle-command/Ta-{ta}"]["overall"] == 1.0, details["success"]
+    policy = {label for label in details["per_episode"] if not label.startswith("oracle")}
+    assert policy == {"fm/euler-1/Ta-4", "fm/euler-1/Ta-8", "fm/euler-1/Ta-16"}
+    assert all(set(details["per_episode"][label]) == names for label in policy)
+    run_module("replay", *common, "--metrics", tmp_path / "mo.json", "--details", tmp_path / "do.json",
+               "--table", tmp_path / "to.md", check=True)
+    assert set(json.loads((tmp_path / "do.json").read_text())["tasks"]) == names  # open loop: the same scenes

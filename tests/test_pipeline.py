@@ -68,7 +68,7 @@ def side_pipeline(root: Path, name: str, **params: object) -> Path:
 
 @pytest.fixture(scope="module")
 def closed_loop(pipeline: Path) -> Path:
-    return side_pipeline(pipeline, "closed_loop", closed_loop={"execute": "8 16", "max_episodes": 3})
+    return side_pipeline(pipeline, "closed_loop", closed_loop={"execute": "8 16", "max_episodes": 3, "epochs": 2})
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ import torch
 from ..dataset import schema
 from ..dataset.loader import (
     Normalizer,
-    anchor_series,
+    command_series,
     normalize_state,
     observation_from_arrays,
     relative_waypoints,
@@ -29,35 +29,35 @@ from ..stats import median_cell
 def replay_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     from ..sim.episode import replay_trajectory, spec_from_objects
 
-    label, name, task, names, objects, traj3d, duration = job
-    run = replay_trajectory(spec_from_objects(task, names, objects), traj3d, duration)
+    label, name, task, names, objects, traj3d, duration, person = job
+    run = replay_trajectory(spec_from_objects(task, names, objects, person), traj3d, duration)
     return label, name, task, run.success, {"failed": [k for k, ok in run.checks.items() if not ok],
                                             "peak_force_n": round(float(run.peak_force_n), 2)}
 
 
 def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
-    """Closed-loop replay of one episode with one model, or with the oracle (runs in a pool process: loads the
-    model itself). The oracle's plans are the demonstration's own future waypoints in the model's target format,
-    normalised with its statistics: they take exactly the path a prediction takes from here on."""
+    """Closed-loop replay of one scene (a recorded test episode's or a fresh one) with one model, or with the oracle
+    (runs in a pool process: loads the model itself). The oracle's plans are the demonstration's own future
+    waypoints in the model's target format, normalised with its statistics: they take exactly the path a prediction
+    takes from here on."""
     from ..sim.episode import replay_closed_loop, spec_from_objects
 
-    label, model_dir, checkpoint, ep, camera_hz, steps, execute, seed, placement, oracle = job
-    target = oracle[0] if oracle is not None else None
+    label, model_dir, checkpoint, sc, steps, execute, seed, placement, oracle = job
     torch.set_num_threads(1)
     policy, ck = load_policy(Path(model_dir) / checkpoint, placement)
     cfg = policy.cfg
     norm = Normalizer(ck["stats"])
     gen = placement.generator(seed)
     state_dim = cfg.state_dim // cfg.n_obs  # 4: tcp and gripper (3: a model trained before the gripper joined)
+    series_t, series_p = sc.series(oracle) if oracle is not None else (None, None)
 
     def predict_normalised(frames: list, elapsed: float) -> torch.Tensor:
         if oracle is not None:
-            _, series_t, series_p = oracle
             now = np.array([[np.interp(elapsed, series_t, series_p[:, d]) for d in range(3)]])
             rel = relative_waypoints(np.array([elapsed]), now, series_t, series_p, cfg.horizon, cfg.rate_hz,
-                                     ep.K, ep.T_base_camera)
+                                     sc.K, sc.T_base_camera)
             return norm.normalize(torch.from_numpy(rel))
-        image = np.concatenate([observation_from_arrays(rgb, ep.affordance, depth, cfg.image_size, cfg.use_depth)
+        image = np.concatenate([observation_from_arrays(rgb, sc.affordance, depth, cfg.image_size, cfg.use_depth)
                                 for rgb, depth, _, _ in frames])
         state = np.stack([np.append(tcp, grip) for _, _, tcp, grip in frames])[:, :state_dim]
         obs = (torch.from_numpy(image)[None], normalize_state(state, ck["stats"])[None])
@@ -67,18 +67,18 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
         """Offsets (Tp, 3) from the anchor, in metres: the unnormalised prediction's x, y, z."""
         return norm.unnormalize(predict_normalised(frames, elapsed))[0, :, 2:].numpy()
 
-    spec = spec_from_objects(ep.task, ep.object_names, ep.objects)
-    run = replay_closed_loop(spec, plan, ep.duration_s, cfg.rate_hz, execute, cfg.n_obs, ep.rgb.shape[0], camera_hz,
-                             anchor="measured" if (target or cfg.target) == "ee" else "command")
-    demo_len = path_length(ep.ee_pos)
-    demo_at_rate = np.stack([np.interp(np.arange(0, ep.duration_s, 1 / cfg.rate_hz), ep.ee_t, ep.ee_pos[:, d])
+    spec = spec_from_objects(sc.task, sc.object_names, sc.objects, sc.person)
+    run = replay_closed_loop(spec, plan, sc.duration_s, cfg.rate_hz, execute, cfg.n_obs, sc.rgb.shape[0],
+                             sc.camera_hz, anchor="measured" if (oracle or cfg.target) == "ee" else "command")
+    demo_len = path_length(sc.ee_pos)
+    demo_at_rate = np.stack([np.interp(np.arange(0, sc.duration_s, 1 / cfg.rate_hz), sc.ee_t, sc.ee_pos[:, d])
                              for d in range(3)], 1)
     diag = {"failed": [k for k, ok in run.checks.items() if not ok], "peak_force_n": round(float(run.peak_force_n), 2),
-            "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - ep.ee_pos[-1])), 2),
+            "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - sc.ee_pos[-1])), 2),
             "path_ratio": round(path_length(run.tcp_path) / demo_len, 3),
             "still_s": round(longest_still(run.command_path, cfg.rate_hz), 2),
             "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2)}
-    return label, ep.name, ep.task, run.success, diag
+    return label, sc.name, sc.task, run.success, diag
 
 
 STILL_M = 0.002  # a waypoint that moves less than this from the previous one (2 cm/s at 10 Hz) is standing still
@@ -95,22 +95,39 @@ def longest_still(waypoints: np.ndarray, rate_hz: float) -> float:
     return best / rate_hz
 
 
-def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, data: Path, eps: list, rates: list[float],
-                formats: list[str], execute: list[int], placement: Placement) -> list[tuple]:
-    """Closed-loop jobs whose plans are each test demonstration's own future waypoints, in `model_dir`'s target
+def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, scenes: list, formats: list[str],
+                execute: list[int], placement: Placement) -> list[tuple]:
+    """Closed-loop jobs whose plans are each scene's demonstration's own future waypoints, in `model_dir`'s target
     format (horizon, rate, statistics) with the anchor of each format: "command" relative to the last command,
     "ee" relative to the measured tcp (the executor's ceiling for policies trained on each)."""
+    missing = [sc.name for sc in scenes if sc.command is None]
+    if "command" in formats and missing:
+        raise AdlError(f"--oracle command: episode {missing[0]} has no commanded end-effector position "
+                       "(frames/action); use --oracle ee")
     jobs = []
-    with schema.open_dataset(data, [ep.name for ep in eps]) as f:
-        series = {fmt: [anchor_series(f[schema.EPISODES][ep.name], fmt, f"{ep.source_path}")[:2] for ep in eps]
-                  for fmt in formats}
     for fmt in formats:
         for ta in execute:
             if ta > horizon:
                 raise AdlError(f"--closed-loop {ta}: {model_dir} predicts only {horizon} waypoints")
-            jobs += [(f"oracle-{fmt}/Ta-{ta}", str(model_dir), checkpoint, ep, rate, 1, ta, 0, placement, (fmt, *s))
-                     for ep, rate, s in zip(eps, rates, series[fmt], strict=True)]
+            jobs += [(f"oracle-{fmt}/Ta-{ta}", str(model_dir), checkpoint, sc, 1, ta, 0, placement, fmt)
+                     for sc in scenes]
     return jobs
+
+
+def closed_loop_scenes(data: Path, eps: list, rates: list[float]) -> list:
+    """The recorded test episodes as closed-loop scenes: each with its camera rate and its command series (None
+    where the recording has none: only an "ee" oracle and policies can run there)."""
+    from .scenes import from_episode
+
+    out = []
+    with schema.open_dataset(data, [ep.name for ep in eps]) as f:
+        for ep, rate in zip(eps, rates, strict=True):
+            try:
+                command = command_series(f[schema.EPISODES][ep.name], ep.source_path)
+            except AdlError:
+                command = None
+            out.append(from_episode(ep, rate, command))
+    return out
 
 
 def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str, dict[str, bool]]) -> str:

@@ -10,7 +10,7 @@ to the policy exactly as a test episode's does. Scene i of a task depends on (se
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -34,32 +34,54 @@ class ReplayScene:
     duration_s: float
     traj3d: np.ndarray  # (N, 3) the demonstration's waypoints
     traj2d: np.ndarray  # (N, 2) the same in the stored image's pixels
+    # What closed loop needs beyond the first frame: the camera (stored-size intrinsics, pose, rate) it renders live
+    # at, and the demonstration's measured and commanded tcp series (the oracle's plans, the path it is compared to)
+    K: np.ndarray
+    T_base_camera: np.ndarray
+    camera_hz: float
+    ee_t: np.ndarray  # (M,) s
+    ee_pos: np.ndarray  # (M, 3)
+    command_t: np.ndarray | None  # (C,) s; None: the recording has no command stream
+    command: np.ndarray | None  # (C, 3)
+    person: dict[str, float] = field(default_factory=dict)  # the person's motion (adlpipe.sim.person); {}: still
+
+    def series(self, target: str) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps, positions) of the demonstration's commanded ("command") or measured ("ee") tcp."""
+        if target == "ee":
+            return self.ee_t, self.ee_pos
+        if self.command is None:
+            raise ValueError(f"{self.name}: no command stream")
+        return self.command_t, self.command
 
 
-def from_episode(ep: Episode) -> ReplayScene:
-    """A recorded test episode as a replay scene."""
+def from_episode(ep: Episode, camera_hz: float = 15.0,
+                 command: tuple[np.ndarray, np.ndarray] | None = None) -> ReplayScene:
+    """A recorded test episode as a replay scene (its camera rate and command series read beside it)."""
+    ct, cmd = command if command is not None else (None, None)
     return ReplayScene(ep.name, ep.task, ep.rgb, ep.affordance, ep.depth, ep.object_names, ep.objects, ep.duration_s,
-                       ep.traj3d, ep.traj2d)
+                       ep.traj3d, ep.traj2d, ep.K, ep.T_base_camera, camera_hz, ep.ee_t, ep.ee_pos, ct, cmd)
 
 
 def fresh_name(task: str, index: int) -> str:
     return f"fresh/{task.replace(' ', '_')}/{index}"
 
 
-def fresh_scene(task: str, i: int, seed: int, camera_size: int, size: int, n_waypoints: int) -> ReplayScene:
+def fresh_scene(task: str, i: int, seed: int, camera_size: int, size: int, n_waypoints: int,
+                camera_hz: float = 15.0, moving_person: bool = False) -> ReplayScene:
     """Fresh scene i of a task (recording index FRESH_INDEX0 + i), at the stored image size `size` of a dataset
-    recorded at `camera_size` px."""
+    recorded at `camera_size` px and `camera_hz` (the rate closed loop renders at)."""
     from ..sim.episode import FRESH_INDEX0
 
-    return recorded_scene(task, FRESH_INDEX0 + i, seed, camera_size, size, n_waypoints)
+    return recorded_scene(task, FRESH_INDEX0 + i, seed, camera_size, size, n_waypoints, camera_hz, moving_person)
 
 
-def recorded_scene(task: str, index: int, seed: int, camera_size: int, size: int, n_waypoints: int) -> ReplayScene:
+def recorded_scene(task: str, index: int, seed: int, camera_size: int, size: int, n_waypoints: int,
+                   camera_hz: float = 15.0, moving_person: bool = False) -> ReplayScene:
     """The scene of the recorder's demonstration `index` of a task, as ingest would have stored its first frame.
     Only the first frame is rendered (the camera is asked for one frame per 1,000 s)."""
     from ..sim.episode import DEPTH_RANGE_M, seeded_demo
 
-    st = seeded_demo(task, seed, index, camera_size, camera_hz=1e-3)
+    st = seeded_demo(task, seed, index, camera_size, camera_hz=1e-3, moving_person=moving_person)
     if not st.success:
         raise RuntimeError(f"{task}: the demonstrator failed in every draw of scene {index}")
     _t, rgb, depth = st.camera[0]
@@ -76,7 +98,9 @@ def recorded_scene(task: str, index: int, seed: int, camera_size: int, size: int
         affordance=cv2.resize(st.affordance.astype(np.float32), (size, size), interpolation=cv2.INTER_LINEAR),
         depth=cv2.resize(depth, (size, size), interpolation=cv2.INTER_NEAREST),
         object_names=names, objects=poses, duration_s=float(ee_t[-1]), traj3d=traj3d,
-        traj2d=project(traj3d, K, st.T_base_camera, PINHOLE, (size, size)))
+        traj2d=project(traj3d, K, st.T_base_camera, PINHOLE, (size, size)), K=K, T_base_camera=st.T_base_camera,
+        camera_hz=camera_hz, ee_t=ee_t, ee_pos=ee_p, command_t=np.array([t for t, _a in st.actions]),
+        command=np.array([a[:3] for _t, a in st.actions]), person=dict(st.spec.person))
 
 
 def initial_poses(st) -> tuple[list[str], np.ndarray]:

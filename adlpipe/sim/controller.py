@@ -36,6 +36,13 @@ class ArmController:
             if sep:
                 self._grasp_sites.setdefault(obj, []).append(i)
         self._prev_dist: dict[str, float] = {}
+        self.person: Callable[[mujoco.MjData, float], None] | None = None  # moves the person (sim.person.mover)
+
+    def step(self) -> None:
+        """One physics step, the person (when one moves) first put where they are at this time."""
+        if self.person is not None:
+            self.person(self.d, self.d.time)
+        mujoco.mj_step(self.m, self.d)
 
     def reset_home(self, tcp_target: np.ndarray = HOME_TCP) -> None:
         """Put the arm (kinematically) at the posture whose tcp is at tcp_target, hand pointing down."""
@@ -143,7 +150,7 @@ def track_path(ctrl: ArmController, path_fn: Callable[[float], np.ndarray], dura
         if i % n_sub == 0:
             ctrl.set_target(path_fn(min(d.time - t0, duration)))
             ctrl.auto_grasp()
-        mujoco.mj_step(m, d)
+        ctrl.step()
         if on_step is not None:
             on_step(t_offset + d.time - t0)
 
@@ -157,7 +164,7 @@ def release_and_settle(ctrl: ArmController, hold: np.ndarray, settle: float = 0.
     for i in range(int(round(settle / m.opt.timestep))):
         if i % 8 == 0:
             ctrl.set_target(hold)
-        mujoco.mj_step(m, d)
+        ctrl.step()
         if on_step is not None:
             on_step(t_offset + d.time - t0)
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..geometry import project
 from .controller import ArmController, execute_path, release_and_settle, track_path
+from .person import mover
 from .tasks import TASKS, Scene, SuccessMonitor, Task
 from .world import ARM_JOINTS, FINGER_JOINTS, HOME_TCP, SceneSpec, build_mjcf
 
@@ -29,6 +30,8 @@ def make_scene(spec: SceneSpec, width: int = 224, height: int = 224,
     mujoco.mj_forward(model, data)
     ctrl = ArmController(model, data)
     ctrl.reset_home()
+    if spec.person:
+        ctrl.person = person_mover(model, spec)
     return ctrl, Scene(model, data, spec)
 
 
@@ -36,33 +39,60 @@ def _min_jerk(s: float) -> float:
     return 10 * s**3 - 15 * s**4 + 6 * s**5
 
 
-def keypoint_path(start: np.ndarray, keypoints: list[tuple[np.ndarray, float]]) -> tuple[Callable, float]:
-    """A smooth path through keypoints (min-jerk per segment, dwelling where asked) and its duration."""
-    knots = [(0.0, start, start)]
+def keypoint_path(start: np.ndarray, keypoints: list[tuple[np.ndarray, float]],
+                  moving: Callable[[float], list[tuple[np.ndarray, float]]] | None = None) -> tuple[Callable, float]:
+    """A smooth path through keypoints (min-jerk per segment, dwelling where asked) and its duration. moving(t):
+    the keypoints where they are at time t (a person who moves), tracked along the same timing."""
+    knots = [(0.0, -1, -1)]  # (end time, from keypoint, to keypoint); -1: the start
     t = 0.0
-    prev = start
-    for p, dwell in keypoints:
+    prev, i_prev = start, -1
+    for i, (p, dwell) in enumerate(keypoints):
         seg = max(MIN_SEGMENT_S, float(np.linalg.norm(p - prev)) / SPEED)
-        knots.append((t + seg, prev, p))
+        knots.append((t + seg, i_prev, i))
         t += seg
         if dwell > 0:
-            knots.append((t + dwell, p, p))
+            knots.append((t + dwell, i, i))
             t += dwell
-        prev = p
+        prev, i_prev = p, i
     times = np.array([k[0] for k in knots])
 
     def fn(tq: float) -> np.ndarray:
+        kp = moving(tq) if moving is not None else keypoints
         i = int(np.searchsorted(times, tq, side="left"))
         if i == 0:
             return start.copy()
         if i >= len(knots):
-            return knots[-1][2].copy()
-        t_end, a, b = knots[i]
+            return kp[knots[-1][2]][0].copy()
+        t_end, ia, ib = knots[i]
+        a, b = (start if ia < 0 else kp[ia][0]), kp[ib][0]
         t_beg = times[i - 1]
         s = _min_jerk(np.clip((tq - t_beg) / max(t_end - t_beg, 1e-9), 0.0, 1.0))
         return a + s * (b - a)
 
     return fn, t
+
+
+def demonstrator_path(task: Task, scene: Scene) -> tuple[Callable, float]:
+    """The scripted demonstrator's tcp path from home through the task's keypoints; with a person who moves, the
+    keypoints follow the person: they are planned at every instant in a copy of the scene where only the person
+    has moved (objects where they started), so a keypoint on an object stays put and one on the mouth moves."""
+    keypoints = task.tcp_keypoints(scene)
+    if not scene.spec.person:
+        return keypoint_path(HOME_TCP.copy(), keypoints)
+    probe = mujoco.MjData(scene.m)
+    probe.qpos[:], probe.mocap_pos[:], probe.mocap_quat[:] = scene.d.qpos, scene.d.mocap_pos, scene.d.mocap_quat
+    move, probe_scene = person_mover(scene.m, scene.spec), Scene(scene.m, probe, scene.spec)
+
+    def at(t: float) -> list[tuple[np.ndarray, float]]:
+        move(probe, t)
+        mujoco.mj_kinematics(scene.m, probe)
+        return task.tcp_keypoints(probe_scene)
+
+    return keypoint_path(HOME_TCP.copy(), keypoints, at)
+
+
+def person_mover(model: mujoco.MjModel, spec: SceneSpec) -> Callable[[mujoco.MjData, float], None]:
+    return mover(model, spec.poses["manikin"], spec.person)
 
 
 def waypoint_path(waypoints: np.ndarray, duration: float) -> Callable:
@@ -186,13 +216,14 @@ def demo_succeeds(spec: SceneSpec) -> bool:
     """Run the demonstrator on a scene without recording anything: does its success predicate hold?"""
     task = TASKS[spec.task]
     ctrl, scene = make_scene(spec, 16, 16)
-    path, duration = keypoint_path(HOME_TCP.copy(), task.tcp_keypoints(scene))
+    path, duration = demonstrator_path(task, scene)
     monitor = SuccessMonitor(task, scene)
     execute_path(ctrl, path, duration, on_step=lambda _t: monitor.step())
     return monitor.success()
 
 
-def sample_balanced_scene(task_name: str, rng: np.random.Generator, max_attempts: int = 8) -> SceneSpec:
+def sample_balanced_scene(task_name: str, rng: np.random.Generator, max_attempts: int = 8,
+                          person: dict[str, float] | None = None) -> SceneSpec:
     """A scene in which the demonstrator succeeds in every mode; its mode is then drawn at random.
 
     Re-drawing a scene only when the chosen mode fails would make the accepted mode depend on the scene (the side
@@ -200,11 +231,11 @@ def sample_balanced_scene(task_name: str, rng: np.random.Generator, max_attempts
     longer be ambiguous. Accepting scenes where all modes work keeps P(mode | scene) = 1/2.
     """
     task = TASKS[task_name]
-    spec = task.sample(rng)
+    spec = replace(task.sample(rng), person=person or {})
     for _ in range(max_attempts):
         if all(demo_succeeds(in_mode(spec, m)) for m in task.modes):
             break
-        spec = task.sample(rng)
+        spec = replace(task.sample(rng), person=person or {})
     return in_mode(spec, float(rng.choice(task.modes)))
 
 
@@ -213,16 +244,21 @@ MAX_ATTEMPTS = 8  # a demonstration whose success predicate still fails is re-sa
 FRESH_INDEX0 = 1_000_000
 
 
-def seeded_demo(task_name: str, seed: int, index: int, size: int, camera_hz: float) -> Streams:
+def seeded_demo(task_name: str, seed: int, index: int, size: int, camera_hz: float,
+                moving_person: bool = False) -> Streams:
     """The recorder's demonstration `index` of a task: its scene drawn from (seed, task, index, attempt), redrawn
     (up to MAX_ATTEMPTS) while the demonstrator fails. The scene depends on these integers alone, never on the
-    host; replay's fresh scenes are the same draw at indices from FRESH_INDEX0."""
+    host; replay's fresh scenes are the same draw at indices from FRESH_INDEX0. moving_person: the person's motion
+    is drawn from a stream of its own, so the scene is the still person's scene with the person moving in it
+    (unless the demonstrator fails with the motion and the scene is redrawn)."""
+    from .person import draw_motion
     from .tasks import TASK_NAMES
 
     ti = TASK_NAMES.index(task_name)
     for attempt in range(MAX_ATTEMPTS):
         rng = np.random.default_rng([seed, ti, index, attempt])
-        spec = sample_balanced_scene(task_name, rng)
+        person = draw_motion(np.random.default_rng([seed, ti, index, attempt, 1])) if moving_person else None
+        spec = sample_balanced_scene(task_name, rng, person=person)
         st = record_demo(task_name, rng, size, size, camera_hz=camera_hz, spec=spec)
         if st.success:
             break
@@ -239,8 +275,7 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
     spec = spec or task.sample(rng)
     ctrl, scene = make_scene(spec, width, height)
     m, d = ctrl.m, ctrl.d
-    keypoints = task.tcp_keypoints(scene)
-    path, duration = keypoint_path(HOME_TCP.copy(), keypoints)
+    path, duration = demonstrator_path(task, scene)
     K = camera_intrinsics(m, width, height)
     T_bc = camera_pose(m, d)
     st = Streams(task_name, spec, width, height, K, T_bc, duration=duration, action_names=list(COMMAND_NAMES))
@@ -373,10 +408,12 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.
                          np.array(commands).reshape(-1, 3))
 
 
-def spec_from_objects(task: str, names: list[str], poses: np.ndarray) -> SceneSpec:
-    """Rebuild a scene specification from the initial object poses stored with an episode (x y z qw qx qy qz)."""
+def spec_from_objects(task: str, names: list[str], poses: np.ndarray,
+                      person: dict[str, float] | None = None) -> SceneSpec:
+    """Rebuild a scene specification from the initial object poses stored with an episode (x y z qw qx qy qz), with
+    the person's motion where the person moves (a fresh scene's; recordings do not store it)."""
     out = {}
     for name, p in zip(names, poses, strict=True):
         qw, qz = p[3], p[6]
         out[name] = (float(p[0]), float(p[1]), float(p[2]), float(2 * np.arctan2(qz, qw)))
-    return SceneSpec(task=task, poses=out, tool=TASKS[task].tool)
+    return SceneSpec(task=task, poses=out, tool=TASKS[task].tool, person=dict(person or {}))

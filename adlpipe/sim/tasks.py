@@ -342,19 +342,27 @@ class SuccessMonitor:
     def __init__(self, task: Task, scene: Scene) -> None:
         self.task, self.scene = task, scene
         m = scene.m
-        self.targets = [(fn(scene), r) for fn, r in task.touches]  # the manikin does not move
         self.reached = 0
         self.tip_site = m.site("tool_tip").id if task.tool else m.site("tcp").id
-        self.manikin = m.body("manikin").id
+        # The person: the manikin and, when the person moves, its head and forearm (adlpipe.sim.person)
+        self.person = {i for i in range(m.nbody) if m.body(i).name.startswith("manikin")}
+        self.moving = bool(scene.spec.person)
         self.tool = m.body("tool").id if task.tool else -1
-        self.stroke = (task.stroke.a(scene), task.stroke.b(scene)) if task.stroke else None
         self.stroked = 0.0
-        self.dwell_point = task.dwell.point(scene) if task.dwell else None
         self.dwelt, self.longest_dwell = 0.0, 0.0
+        self._locate()
         self.max_force = 0.0
         self._prev_tip: np.ndarray | None = None
         self._prev_time = float(scene.d.time)
         self._f6 = np.zeros(6)
+
+    def _locate(self) -> None:
+        """Where the targets are now: once for a still person, at every step for one who moves (the spoon must
+        reach the mouth where the mouth is then)."""
+        t, s = self.task, self.scene
+        self.targets = [(fn(s), r) for fn, r in t.touches]
+        self.stroke = (t.stroke.a(s), t.stroke.b(s)) if t.stroke else None
+        self.dwell_point = t.dwell.point(s) if t.dwell else None
 
     def _manikin_contacts(self) -> tuple[float, bool]:
         """(largest normal force on the manikin now, whether the tool touches it near the stroke)."""
@@ -363,7 +371,7 @@ class SuccessMonitor:
         for i in range(d.ncon):
             c = d.contact[i]
             b1, b2 = m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]
-            if self.manikin not in (b1, b2):
+            if b1 not in self.person and b2 not in self.person:
                 continue
             mujoco.mj_contactForce(m, d, i, self._f6)
             force = max(force, abs(float(self._f6[0])))
@@ -373,6 +381,8 @@ class SuccessMonitor:
 
     def step(self) -> None:
         d = self.scene.d
+        if self.moving:
+            self._locate()
         tip = d.site_xpos[self.tip_site].copy()
         dt = float(d.time) - self._prev_time
         force, stroking = self._manikin_contacts()

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .person import ELBOW, FOREARM_BODY, HAND, HEAD_BODY, NECK
+
 # Fixed geometry (metres, base_link frame).
 TABLE_TOP_Z = 0.0
 SHOULDER_Z = 0.32
@@ -31,6 +33,7 @@ class SceneSpec:
     poses: dict[str, tuple[float, float, float, float]]
     tool: str | None = None
     extras: dict[str, float] = field(default_factory=dict)
+    person: dict[str, float] = field(default_factory=dict)  # the person's motion (adlpipe.sim.person); {}: still
 
 
 def _camera_xyaxes(pos: np.ndarray, lookat: np.ndarray) -> str:
@@ -140,29 +143,55 @@ def _tool_xml(tool: str | None) -> str:
             'size="0.006"/></body>')
 
 
-def _manikin_xml(x: float, y: float, z: float, yaw: float) -> str:
-    """A seated manikin facing the robot (-y). Sites mark the parts the tasks touch."""
+def _xyz(p: np.ndarray) -> str:
+    return " ".join(f"{float(c):.6g}" for c in p)
+
+
+# The manikin's parts in its frame (a seated person facing the robot, -y): geoms and the sites the tasks touch.
+# The head (with its sites) and the left forearm are separate parts: bodies of their own for a person who moves
+# (adlpipe.sim.person), inline in the manikin for a still one.
+_SKIN = 'rgba="0.93 0.78 0.66 1" {contact}'
+_HEAD_GEOMS = [
+    ('<geom name="head" type="sphere" size="0.085" pos="{}" ' + _SKIN + "/>", [(0, 0.10, 0.40)]),
+    ('<geom name="hair" type="sphere" size="0.088" pos="{}" rgba="0.25 0.15 0.08 1" {contact}/>', [(0, 0.115, 0.43)]),
+]
+_FOREARM_GEOMS = [('<geom type="capsule" fromto="{} {}" size="0.03" ' + _SKIN + "/>", [ELBOW, HAND])]
+_HEAD_SITES = {"nose": (0, 0.015, 0.40), "mouth": (0, 0.025, 0.355), "hair_front": (0, 0.06, 0.50),
+               "hair_mid": (0, 0.11, 0.518), "hair_back": (0, 0.16, 0.51), "head_top": (0, 0.11, 0.52)}
+_FOREARM_SITES = {"forearm_start": (-0.195, 0.005, 0.084), "forearm_end": (-0.135, -0.095, 0.069)}
+
+
+def _parts(geoms: list, origin: tuple | np.ndarray = (0.0, 0.0, 0.0)) -> str:
+    return "".join(xml.format(*(_xyz(np.subtract(p, origin)) for p in pts), contact=MANIKIN_CONTACT)
+                   for xml, pts in geoms)
+
+
+def _sites(sites: dict, origin: tuple | np.ndarray = (0.0, 0.0, 0.0)) -> str:
+    return "".join(f'<site name="{n}" pos="{_xyz(np.subtract(p, origin))}" size="0.01" rgba="1 0 0 0.5"/>'
+                   for n, p in sites.items())
+
+
+def _manikin_xml(x: float, y: float, z: float, yaw: float, moving: bool = False) -> str:
+    """A seated manikin facing the robot (-y). Sites mark the parts the tasks touch. moving: the head and the left
+    forearm as mocap bodies at their pivots (the neck, the elbow), which adlpipe.sim.person moves."""
     skin = f'rgba="0.93 0.78 0.66 1" {MANIKIN_CONTACT}'
-    return f"""
-    <body name="manikin" pos="{x} {y} {z}" quat="{_yaw_quat(yaw)}">
-      <geom type="box" size="0.17 0.09 0.22" pos="0 0.14 0.05" rgba="0.3 0.45 0.7 1" {MANIKIN_CONTACT}/>
-      <geom type="capsule" fromto="0 0.12 0.26 0 0.12 0.32" size="0.04" {skin}/>
-      <geom name="head" type="sphere" size="0.085" pos="0 0.10 0.40" {skin}/>
-      <geom name="hair" type="sphere" size="0.088" pos="0 0.115 0.43" rgba="0.25 0.15 0.08 1"
-            {MANIKIN_CONTACT}/>
-      <geom type="capsule" fromto="-0.22 0.05 0.06 -0.12 -0.12 0.035" size="0.03" {skin}/>
-      <geom type="capsule" fromto="0.22 0.05 0.06 0.16 -0.10 0.035" size="0.03" {skin}/>
-      <geom type="sphere" size="0.035" pos="0.16 -0.12 0.035" {skin}/>
-      <site name="nose" pos="0 0.015 0.40" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="mouth" pos="0 0.025 0.355" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="hair_front" pos="0 0.06 0.50" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="hair_mid" pos="0 0.11 0.518" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="hair_back" pos="0 0.16 0.51" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="head_top" pos="0 0.11 0.52" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="forearm_start" pos="-0.195 0.005 0.084" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="forearm_end" pos="-0.135 -0.095 0.069" size="0.01" rgba="1 0 0 0.5"/>
-      <site name="hand_rest" pos="0.16 -0.18 0.04" size="0.01" rgba="1 0 0 0.5"/>
-    </body>"""
+    torso = (f'<geom type="box" size="0.17 0.09 0.22" pos="0 0.14 0.05" rgba="0.3 0.45 0.7 1" {MANIKIN_CONTACT}/>'
+             f'<geom type="capsule" fromto="0 0.12 0.26 0 0.12 0.32" size="0.04" {skin}/>')
+    right = (f'<geom type="capsule" fromto="0.22 0.05 0.06 0.16 -0.10 0.035" size="0.03" {skin}/>'
+             f'<geom type="sphere" size="0.035" pos="0.16 -0.12 0.035" {skin}/>')
+    hand_rest = _sites({"hand_rest": (0.16, -0.18, 0.04)})
+    quat = _yaw_quat(yaw)
+    if not moving:
+        return (f'<body name="manikin" pos="{x} {y} {z}" quat="{quat}">{torso}{_parts(_HEAD_GEOMS)}'
+                f"{_parts(_FOREARM_GEOMS)}{right}{_sites(_HEAD_SITES)}{_sites(_FOREARM_SITES)}{hand_rest}</body>")
+    rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    out = f'<body name="manikin" pos="{x} {y} {z}" quat="{quat}">{torso}{right}{hand_rest}</body>'
+    for name, pivot, geoms, sites in ((HEAD_BODY, NECK, _HEAD_GEOMS, _HEAD_SITES),
+                                      (FOREARM_BODY, ELBOW, _FOREARM_GEOMS, _FOREARM_SITES)):
+        at = np.array([x, y, z]) + rot @ pivot
+        out += (f'<body name="{name}" mocap="true" pos="{_xyz(at)}" quat="{quat}">{_parts(geoms, pivot)}'
+                f"{_sites(sites, pivot)}</body>")
+    return out
 
 
 # Free objects: name -> geoms (body frame at the object's base centre on the table). Graspable objects have a
@@ -208,7 +237,7 @@ def build_mjcf(spec: SceneSpec, width: int = 224, height: int = 224, markers: li
               f'conaffinity="0" group="{MARKER_GROUP}"/>' for p in (markers or [])]
     for name, (x, y, z, yaw) in spec.poses.items():
         if name == "manikin":
-            bodies.append(_manikin_xml(x, y, z, yaw))
+            bodies.append(_manikin_xml(x, y, z, yaw, moving=bool(spec.person)))
         elif name in _OBJECTS:
             bodies.append(
                 f'<body name="{name}" pos="{x} {y} {z}" quat="{_yaw_quat(yaw)}"><freejoint name="{name}_free"/>'
