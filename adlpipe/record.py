@@ -116,8 +116,8 @@ def _record_one(job: tuple) -> tuple[str, int, bool]:
     from .sim.episode import seeded_demo
     from .sim.tasks import TASK_NAMES
 
-    task, idx, out, seed, fmt, image_format, depth_format, size, camera_hz = job
-    st = seeded_demo(task, seed, idx, size, camera_hz)
+    task, idx, out, seed, fmt, image_format, depth_format, size, camera_hz, moving_person = job
+    st = seeded_demo(task, seed, idx, size, camera_hz, moving_person)
     path = Path(out) / f"{task.replace(' ', '_')}_{idx:04d}{FORMATS[fmt]}"
     write_episode_bag(st, path, fmt, image_format, depth_format, episode_index=TASK_NAMES.index(task) * 10000 + idx)
     return str(path), st.attempts, st.success
@@ -161,12 +161,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="camera width and height in pixels (default 224; Push-T renders at this size too)")
     p.add_argument("--camera-hz", type=float_range(0.1, 120), default=15.0)
     p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--moving-person", action="store_true",
+                   help="adl: the person moves during each episode (the head turns and nods, the forearm lifts; "
+                   "adlpipe.sim.person) and the demonstrator follows them; the same seeded scenes otherwise")
     p.add_argument("--workers", type=int_range(1, 256), default=2)
     p.add_force()
     args = p.parse_args(argv)
     bad = [t for t in args.tasks if t not in TASK_NAMES]
     if bad:
         raise AdlError(f"unknown task(s) {bad}; tasks are {TASK_NAMES}")
+    if args.moving_person and args.world != "adl":
+        raise AdlError(f"--moving-person: the {args.world} world has no person; it moves in the ADL world only")
     if args.episodes < 1 or args.size < 16:
         raise AdlError("--episodes must be >= 1 and --size >= 16")
     return args
@@ -183,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         worker = _record_one
         jobs = [(t, i, str(args.out), args.seed, args.format, args.image_format, args.depth_format, args.size,
-                 args.camera_hz) for t in args.tasks for i in range(args.episodes)]
+                 args.camera_hz, args.moving_person) for t in args.tasks for i in range(args.episodes)]
     failed = 0
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         for _path, _attempts, ok in tqdm(pool.map(worker, jobs), total=len(jobs), desc="record",

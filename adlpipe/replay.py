@@ -61,7 +61,7 @@ from .evaluation.replay import (
     replay_one,
     training_summary,
 )
-from .evaluation.scenes import ReplayScene, fresh_scene, from_episode
+from .evaluation.scenes import STILL_DEMO, ReplayScene, fresh_scene, from_episode
 from .evaluation.tables import FIXED
 from .journal import Journal, fingerprint
 from .policy.blind import BLIND, blind_predictions, task_means
@@ -90,6 +90,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--scene-camera-size", type=int_range(16, 2048),
                    help="the recordings' camera size in px (record --size) at which fresh scenes are rendered before "
                    "they are resized as ingest resizes (default: the dataset's stored size)")
+    p.add_argument("--time-limit", type=float_range(0.5, 10), default=1.0,
+                   help="closed loop: run each rollout for this many times its demonstration's duration (default 1: "
+                   "the duration itself, as open loop)")
     p.add_argument("--scene-camera-hz", type=float_range(0.1, 120),
                    help="the camera rate closed loop renders fresh scenes at (record --camera-hz; default: the "
                    "recorded test episodes' median rate)")
@@ -166,6 +169,8 @@ def open_loop_jobs(args: argparse.Namespace, split: dict, scenes: list[ReplaySce
                    checkpoint: str, placement: Placement) -> tuple[list[tuple], dict[str, np.ndarray]]:
     """Every (policy, scene, timing) replay, with each policy's predicted waypoints (u, v, x, y, z) per scene."""
     trajs = {"demo": np.stack([np.concatenate([s.traj2d, s.traj3d], 1) for s in scenes])}
+    if scenes and all(s.still_traj is not None for s in scenes):  # the person moves: open loop's ceiling
+        trajs[STILL_DEMO] = np.stack([s.still_traj for s in scenes])
     try:
         trajs[BLIND] = blind_predictions(task_means(args.data, split["train"]), [s.task for s in scenes])
     except AdlError as exc:  # a test task without training episodes: no floor to state
@@ -209,13 +214,15 @@ def closed_loop_jobs(args: argparse.Namespace, scenes: list[ReplayScene], checkp
             raise AdlError(f"{d}: sees cameras {', '.join(policy.cfg.cameras)}; the ADL world renders one "
                            "camera, so closed-loop replay cannot feed it")
         if i == 0 and args.oracle:  # in the first model's format
-            jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, scenes, args.oracle, args.closed_loop, placement)
+            jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, scenes, args.oracle, args.closed_loop, placement,
+                                args.time_limit)
         for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
             for ta in args.closed_loop:
                 if ta > policy.cfg.horizon:
                     raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
                 label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}"
-                jobs += [(label, str(d), checkpoint, sc, steps, ta, args.seed, placement, None) for sc in scenes]
+                jobs += [(label, str(d), checkpoint, sc, steps, ta, args.seed, placement, None, args.time_limit)
+                         for sc in scenes]
     return jobs
 
 

@@ -29,6 +29,7 @@ from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import UNDERTRAINED_RATIO, claims, convergence_lines
 from .evaluation.figures import figures
 from .evaluation.outcomes import breakdown_lines
+from .evaluation.person import moving_person_lines
 from .evaluation.sections import closed_loop_lines, grasp_tasks, headline_lines, mode_lines, summary_files
 from .evaluation.tables import blind_lines, default_row, per_task_lines
 from .evaluation.training_log import read_training_log
@@ -59,6 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--eval", type=Path, default=Path("metrics/eval_details.json"))
     p.add_argument("--replay", type=Path, default=Path("metrics/replay_details.json"))
     p.add_argument("--closed-loop", type=Path, help="replay details of closed-loop policies (optional)")
+    p.add_argument("--moving-replay", type=Path, help="open-loop replay details of the same fresh scenes with the "
+                   "person moving (replay --moving-person; optional)")
+    p.add_argument("--moving-closed-loop", type=Path, help="closed-loop replay details of the same fresh scenes with "
+                   "the person moving (optional)")
     p.add_argument("--train-logs", type=Path, default=Path("metrics/train"), help="folder of <model>.csv logs")
     p.add_argument("--table1", type=Path, default=Path("reports/table1.md"))
     p.add_argument("--table2", type=Path, default=Path("reports/table2.md"))
@@ -113,6 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     cl = _load(args.closed_loop) if args.closed_loop is not None and args.closed_loop.exists() else {}
     if cl:
         parts += ["## Closed loop vs open loop (success %)", "", *closed_loop_lines(rp, cl), ""]
+    moving = moving_person_lines(rp, cl, *(_load(m) if m is not None and m.exists() else {}
+                                           for m in (args.moving_replay, args.moving_closed_loop)))
+    if moving:
+        parts += ["## The person who moves (success %, the same fresh scenes)", "", *moving, ""]
     if args.table1.exists():
         parts += ["## Table 1 in detail: every checkpoint, sampler and step count", "", read_table(args.table1), ""]
     for t in (args.table2, args.table2_closed_loop):

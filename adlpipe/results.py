@@ -3,6 +3,7 @@
     python -m adlpipe.results --save-from metrics        # after `dvc repro`: keep the run's details in results/
     python -m adlpipe.results --save-seeds pipelines/seeds/metrics/seeds.json
     python -m adlpipe.results --save-study pipelines/study     # after `dvc repro` there
+    python -m adlpipe.results --save-closed-loop pipelines/closed_loop     # likewise
     python -m adlpipe.results                            # rewrite README's tables from results/
     python -m adlpipe.results --check                    # exit 1 when README and results/ disagree (a test runs it)
 
@@ -24,6 +25,7 @@ from .cli import Parser
 from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import claims
 from .evaluation.outcomes import breakdown_lines
+from .evaluation.person import moving_person_lines
 from .evaluation.sections import grasp_tasks
 from .evaluation.tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
 from .stats import rate_cell
@@ -56,6 +58,11 @@ STUDY_FILES = {"metrics/seed0/eval_details.json": "eval_details.json",
                "reports/closed_loop/report.md": "closed_loop_report.md",
                **{f"metrics/seed{k}/{kind}_details.json": f"seed{k}/{kind}_details.json"
                   for k in (1, 2) for kind in ("eval", "replay")}}
+# What the closed-loop pipeline keeps (pipelines/closed_loop -> results/closed_loop): its own path -> the name kept
+CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_loop_details.json",
+                     "metrics/replay_moving_closed_loop_details.json": "replay_moving_closed_loop_details.json",
+                     "metrics/replay_moving_open_details.json": "replay_moving_open_details.json",
+                     "reports/report.md": "report.md", "reports/history.md": "history.md"}
 OPEN_LOOP_OF = {"fm_cnn": "fm_cnn/euler-1", "dp_cnn": "dp_cnn/ddpm-16", "bc_cnn": "bc_cnn"}
 
 
@@ -133,6 +140,13 @@ def tables(results: Path) -> dict[str, str]:
     study = results / "study"
     if (study / "eval_details.json").exists():
         out.update(study_tables(study))
+    closed = results / "closed_loop"
+    if (closed / "replay_closed_loop_details.json").exists():
+        cl = _load(closed / "replay_closed_loop_details.json")
+        out["closed-loop-fresh"] = closed_loop_table(rp, cl)
+        moving = [closed / f"replay_moving_{k}_details.json" for k in ("open", "closed_loop")]
+        if all(m.exists() for m in moving):
+            out["moving-person"] = moving_person_lines(rp, cl, *map(_load, moving))
     return {k: "\n".join(v) for k, v in out.items() if v}
 
 
@@ -170,6 +184,24 @@ def save_study(pipeline: Path, results: Path) -> None:
             shutil.copyfile(log, tmp)
 
 
+def save_closed_loop(pipeline: Path, results: Path) -> None:
+    """Keep the closed-loop pipeline's details, reports and training logs in RESULTS/closed_loop (all readable
+    before any is copied)."""
+    first = next(iter(CLOSED_LOOP_FILES))
+    if not (pipeline / first).is_file():
+        raise AdlError(f"{pipeline}: the closed loop has not been replayed ({first} missing); run dvc repro there")
+    present = [k for k in CLOSED_LOOP_FILES if (pipeline / k).is_file()]
+    for src in present:
+        if src.endswith(".json"):
+            _load(pipeline / src)
+    for src in present:
+        with atomic_path(results / "closed_loop" / CLOSED_LOOP_FILES[src]) as tmp:
+            shutil.copyfile(pipeline / src, tmp)
+    for log in sorted((pipeline / "metrics" / "train").glob("*.csv")):
+        with atomic_path(results / "closed_loop" / "train" / log.name) as tmp:
+            shutil.copyfile(log, tmp)
+
+
 def _block(name: str) -> re.Pattern:
     return re.compile(rf"(<!-- results:{re.escape(name)} -->\n)(.*?)(<!-- /results:{re.escape(name)} -->)", re.S)
 
@@ -199,9 +231,13 @@ def main(argv: list[str] | None = None) -> int:
                    "RESULTS/seeds/seeds.json")
     p.add_argument("--save-study", type=Path, metavar="PIPELINE", help="first keep the study's details, reports and "
                    "training logs (pipelines/study) in RESULTS/study")
+    p.add_argument("--save-closed-loop", type=Path, metavar="PIPELINE", help="first keep the closed-loop pipeline's "
+                   "details, reports and training logs (pipelines/closed_loop) in RESULTS/closed_loop")
     args = p.parse_args(argv)
     if args.save_study is not None:
         save_study(args.save_study, args.results)
+    if args.save_closed_loop is not None:
+        save_closed_loop(args.save_closed_loop, args.results)
     if args.save_from is not None:
         present = [n for n in RUN_FILES if n in RUN_FILES[:2] or (args.save_from / n).exists()]
         for name in present:

@@ -87,3 +87,24 @@ def test_contact_with_a_moving_person_counts_as_force() -> None:
         track_path(ctrl, lambda _t, a=above: a, 2.0, on_step=lambda _t, m=monitor: m.step())
         forces[label] = monitor.max_force
     assert forces["still"] == 0.0 and forces["moving"] > 1.0, forces
+
+
+def test_record_moving_person_writes_the_same_scene_with_the_person_moving(tmp_path) -> None:
+    """record --moving-person: the same seeded scene (the first frame equal to the still recording's) with a
+    demonstration that follows the mouth where it went; a world without a person refuses the option."""
+    from conftest import one_line_error, run_module
+
+    from adlpipe.dataset import schema
+
+    eps = {}
+    for label, extra in (("still", []), ("moving", ["--moving-person"])):
+        run_module("record", "--out", tmp_path / label, "--episodes", "1", "--tasks", "feed the human", "--size", "32",
+                   "--camera-hz", "2", "--workers", "1", *extra, check=True)
+        run_module("ingest", *sorted((tmp_path / label).iterdir()), "-o", tmp_path / f"{label}.h5", "--size", "32",
+                   check=True)
+        with schema.open_dataset(tmp_path / f"{label}.h5") as f:
+            eps[label] = schema.read_episode(f, schema.episode_names(f)[0])
+    assert np.array_equal(eps["still"].rgb, eps["moving"].rgb)  # the person moves after the first frame
+    assert 0.005 < np.abs(eps["still"].traj3d - eps["moving"].traj3d).max() < 0.1  # the spoon went elsewhere
+    proc = run_module("record", "--world", "pusht", "--out", tmp_path / "p", "--moving-person")
+    assert proc.returncode != 0 and "--moving-person" in one_line_error(proc)

@@ -68,7 +68,7 @@ def side_pipeline(root: Path, name: str, **params: object) -> Path:
 
 @pytest.fixture(scope="module")
 def closed_loop(pipeline: Path) -> Path:
-    return side_pipeline(pipeline, "closed_loop", closed_loop={"execute": "8 16", "max_episodes": 3, "epochs": 2})
+    return side_pipeline(pipeline, "closed_loop", closed_loop={"execute": "8 16", "epochs": 2})
 
 
 @pytest.fixture(scope="module")
@@ -251,7 +251,8 @@ def test_closed_loop_replay_replans_from_new_images(closed_loop: Path, pipeline:
     labels = {f"{m}/Ta-{ta}" for m in ("fm_cnn/euler-1", "dp_cnn/ddpm-16", "bc_cnn", "oracle-command")
               for ta in (8, 16)}
     assert set(details["success"]) == labels
-    assert all(len(v) == 3 for v in details["per_episode"].values())
+    root = json.loads((pipeline / "metrics" / "replay_details.json").read_text())
+    assert all(set(v) == set(root["tasks"]) for v in details["per_episode"].values())  # the same fresh scenes
     for ta in (8, 16):  # the executor fed the demonstrations' plans in the policies' format solves the scenes
         assert details["success"][f"oracle-command/Ta-{ta}"]["overall"] >= 0.9, details["success"]
     assert details["training"]["fm_cnn"]["optimizer_steps"] == json.loads(
@@ -266,6 +267,14 @@ def test_closed_loop_replay_replans_from_new_images(closed_loop: Path, pipeline:
     assert "- fm_cnn: closed loop " in report and "open loop. Best closed loop fm_cnn/euler-1/Ta-" in report
     assert "exact McNemar p = " in report and "## Where the failed rollouts fail" in report
     assert "| open loop: fm_cnn/euler-1 (first frame -> whole trajectory) |" in report
+    # the person who moves: the same scenes, every policy open and closed loop, and open loop's ceiling
+    moving = json.loads((closed_loop / "metrics" / "replay_moving_closed_loop_details.json").read_text())
+    assert moving["scenes"]["moving_person"] and set(moving["tasks"]) == set(root["tasks"])
+    assert moving["success"]["oracle-command/Ta-8"]["overall"] >= 0.9, moving["success"]
+    section = report.split("## The person who moves")[1]
+    for row in ("| open loop: demo-still-person |", "| open loop: fm_cnn/euler-1 |", "| closed loop: bc_cnn/Ta-16 |",
+                "| closed loop: oracle-command/Ta-8 |"):
+        assert row in section, row
 
 
 def test_the_papers_pair_runs_beside_the_trio(paper: Path) -> None:

@@ -42,7 +42,7 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     takes from here on."""
     from ..sim.episode import replay_closed_loop, spec_from_objects
 
-    label, model_dir, checkpoint, sc, steps, execute, seed, placement, oracle = job
+    label, model_dir, checkpoint, sc, steps, execute, seed, placement, oracle, time_limit = job
     torch.set_num_threads(1)
     policy, ck = load_policy(Path(model_dir) / checkpoint, placement)
     cfg = policy.cfg
@@ -68,8 +68,9 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
         return norm.unnormalize(predict_normalised(frames, elapsed))[0, :, 2:].numpy()
 
     spec = spec_from_objects(sc.task, sc.object_names, sc.objects, sc.person)
-    run = replay_closed_loop(spec, plan, sc.duration_s, cfg.rate_hz, execute, cfg.n_obs, sc.rgb.shape[0],
+    run = replay_closed_loop(spec, plan, time_limit * sc.duration_s, cfg.rate_hz, execute, cfg.n_obs, sc.rgb.shape[0],
                              sc.camera_hz, anchor="measured" if (oracle or cfg.target) == "ee" else "command")
+    demo_t, demo_p = sc.series("command") if sc.command is not None else sc.series("ee")
     demo_len = path_length(sc.ee_pos)
     demo_at_rate = np.stack([np.interp(np.arange(0, sc.duration_s, 1 / cfg.rate_hz), sc.ee_t, sc.ee_pos[:, d])
                              for d in range(3)], 1)
@@ -77,8 +78,52 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
             "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - sc.ee_pos[-1])), 2),
             "path_ratio": round(path_length(run.tcp_path) / demo_len, 3),
             "still_s": round(longest_still(run.command_path, cfg.rate_hz), 2),
-            "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2)}
+            "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2),
+            **plan_diagnostics(run.command_path, demo_p[0], execute, cfg.rate_hz, demo_t, demo_p)}
     return label, sc.name, sc.task, run.success, diag
+
+
+def median_or_none(values: np.ndarray) -> float | None:
+    return round(float(np.median(values)), 3) if len(values) else None
+
+
+OFF_PATH_M = 0.02  # a re-plan whose anchor lies further than this from the demonstrated path is off it
+
+
+def plan_ratios(commands: np.ndarray, start: np.ndarray, execute: int, rate_hz: float, demo_t: np.ndarray,
+                demo_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per re-plan, (how far the executed part of the plan moves the command against how far the demonstration
+    moves it over the same time from the same phase, how far the anchor is from the demonstrated path in metres):
+    the path length of the `execute` waypoints (from the anchor) over the demonstration's path length over
+    execute / rate_hz seconds from its point nearest the anchor (searched forward along the demonstration, so that
+    a rollout that lags is compared with where it is, not where the clock is). 1: the plan moves as the
+    demonstration does; below 1: it moves the arm too little. Re-plans where the demonstration itself stands still
+    (under 1 mm over the span: a dwell, the end) are left out."""
+    span = execute / rate_hz
+    chunks = commands.reshape(-1, execute, 3)
+    anchors = np.vstack([start[None], chunks[:-1, -1]])
+    ratios, off, j = [], [], 0
+    for anchor, chunk in zip(anchors, chunks, strict=True):
+        ahead = j + int(np.searchsorted(demo_t[j:], demo_t[j] + max(2 * span, 1.0)))  # not a later pass of a stroke
+        dist = np.linalg.norm(demo_p[j:ahead + 1] - anchor, axis=1)
+        j += int(np.argmin(dist))
+        ts = np.linspace(demo_t[j], demo_t[j] + span, execute + 1)
+        demo = path_length(np.stack([np.interp(ts, demo_t, demo_p[:, d]) for d in range(3)], 1))
+        if demo > 1e-3:
+            ratios.append(path_length(np.vstack([anchor, chunk])) / demo)
+            off.append(float(dist.min()))
+    return np.array(ratios), np.array(off)
+
+
+def plan_diagnostics(commands: np.ndarray, start: np.ndarray, execute: int, rate_hz: float, demo_t: np.ndarray,
+                     demo_p: np.ndarray) -> dict:
+    """A rollout's plans against the demonstration (plan_ratios): the median ratio over all its re-plans, over those
+    on the demonstrated path (anchor within OFF_PATH_M of it) and those off it, and the farthest it got (cm)."""
+    ratios, off = plan_ratios(commands, start, execute, rate_hz, demo_t, demo_p)
+    on = off <= OFF_PATH_M
+    return {"plan_ratio": median_or_none(ratios), "plan_ratio_on_path": median_or_none(ratios[on]),
+            "plan_ratio_off_path": median_or_none(ratios[~on]), "replans_off_path": int((~on).sum()),
+            "replans": len(ratios), "off_path_cm": round(100 * float(off.max()), 2) if len(off) else None}
 
 
 STILL_M = 0.002  # a waypoint that moves less than this from the previous one (2 cm/s at 10 Hz) is standing still
@@ -96,7 +141,7 @@ def longest_still(waypoints: np.ndarray, rate_hz: float) -> float:
 
 
 def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, scenes: list, formats: list[str],
-                execute: list[int], placement: Placement) -> list[tuple]:
+                execute: list[int], placement: Placement, time_limit: float = 1.0) -> list[tuple]:
     """Closed-loop jobs whose plans are each scene's demonstration's own future waypoints, in `model_dir`'s target
     format (horizon, rate, statistics) with the anchor of each format: "command" relative to the last command,
     "ee" relative to the measured tcp (the executor's ceiling for policies trained on each)."""
@@ -109,8 +154,8 @@ def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, scenes: list, fo
         for ta in execute:
             if ta > horizon:
                 raise AdlError(f"--closed-loop {ta}: {model_dir} predicts only {horizon} waypoints")
-            jobs += [(f"oracle-{fmt}/Ta-{ta}", str(model_dir), checkpoint, sc, 1, ta, 0, placement, fmt)
-                     for sc in scenes]
+            jobs += [(f"oracle-{fmt}/Ta-{ta}", str(model_dir), checkpoint, sc, 1, ta, 0, placement, fmt,
+                      time_limit) for sc in scenes]
     return jobs
 
 
@@ -140,9 +185,14 @@ def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str
              "Failed rollouts per missed part of the predicate (a rollout may miss several); end error: the last "
              "command from the demonstration's end; path: the arm's path length over the demonstration's; still: "
              f"the longest stretch the command moved under {1000 * STILL_M:.0f} mm per waypoint, against the "
-             "demonstration's (medians over the failed rollouts, with their 95 % bootstrap intervals).\n",
-             "| policy | failed | " + " | ".join(parts) + " | end error cm | path | still s (demo) |",
-             "| --- | ---: |" + " ---: |" * (len(parts) + 3)]
+             "demonstration's (medians over the failed rollouts, with their 95 % bootstrap intervals); plan / demo: "
+             "per re-plan, the executed plan's path over the demonstration's from the same phase over the same time "
+             "(median per rollout, then over all the policy's rollouts; 1: it moves as the demonstration does), "
+             f"on the demonstrated path (the anchor within {100 * OFF_PATH_M:.0f} cm of it) and off it, with the "
+             "share of re-plans made off it.\n",
+             "| policy | failed | " + " | ".join(parts) + " | end error cm | path | still s (demo) | plan / demo | "
+             "on path | off path | re-plans off path |",
+             "| --- | ---: |" + " ---: |" * (len(parts) + 7)]
     for label, diags in diagnostics.items():
         bad = [d for name, d in diags.items() if not per_episode[label].get(name, False)]
         counts = " | ".join(str(sum(p in d["failed"] for d in bad)) for p in parts)
@@ -150,8 +200,18 @@ def failure_table(diagnostics: dict[str, dict[str, dict]], per_episode: dict[str
         path = median_cell([d["path_ratio"] for d in bad], 2) if bad else "-"
         still = (f"{median_cell([d['still_s'] for d in bad])} ({median_cell([d['demo_still_s'] for d in bad])})"
                  if bad else "-")
-        lines.append(f"| {label} | {len(bad)} of {len(diags)} | {counts} | {err} | {path} | {still} |")
+        ratio = [_median_of(diags, k) for k in ("plan_ratio", "plan_ratio_on_path", "plan_ratio_off_path")]
+        off = sum(d.get("replans_off_path", 0) for d in diags.values())
+        total = sum(d.get("replans", 0) for d in diags.values())
+        share = f"{100 * off / total:.0f} %" if total else "-"
+        lines.append(f"| {label} | {len(bad)} of {len(diags)} | {counts} | {err} | {path} | {still} | "
+                     f"{' | '.join(ratio)} | {share} |")
     return "\n".join(lines) + "\n"
+
+
+def _median_of(diags: dict[str, dict], key: str) -> str:
+    values = [d[key] for d in diags.values() if d.get(key) is not None]
+    return median_cell(values, 2) if values else "-"
 
 
 def path_length(traj3d: np.ndarray) -> float:

@@ -19,6 +19,8 @@ from ..camera import PINHOLE, project
 from ..dataset.schema import Episode
 from ..geometry import resample, scale_intrinsics
 
+STILL_DEMO = "demo-still-person"  # replay's row of the still person's demonstration run with the person moving
+
 
 @dataclass
 class ReplayScene:
@@ -44,6 +46,9 @@ class ReplayScene:
     command_t: np.ndarray | None  # (C,) s; None: the recording has no command stream
     command: np.ndarray | None  # (C, 3)
     person: dict[str, float] = field(default_factory=dict)  # the person's motion (adlpipe.sim.person); {}: still
+    # With the person moving: the still person's demonstration of the same scene (N, 5: u, v, x, y, z), what a
+    # perfect first-frame plan executes (the first frame is the same); None where the scenes differ or all is still
+    still_traj: np.ndarray | None = None
 
     def series(self, target: str) -> tuple[np.ndarray, np.ndarray]:
         """(stamps, positions) of the demonstration's commanded ("command") or measured ("ee") tcp."""
@@ -87,11 +92,15 @@ def recorded_scene(task: str, index: int, seed: int, camera_size: int, size: int
     _t, rgb, depth = st.camera[0]
     depth = depth.copy()
     depth[depth > DEPTH_RANGE_M] = np.nan
-    ee_t = np.array([t for t, _p, _q in st.ee])
-    ee_p = np.array([p for _t, p, _q in st.ee])
-    traj3d = resample(ee_t, ee_p, 0.0, float(ee_t[-1]), n_waypoints)
+    ee_t, ee_p, traj3d = demonstration(st, n_waypoints)
     K = scale_intrinsics(st.K, size / camera_size, size / camera_size)
     names, poses = initial_poses(st)
+    still_traj = None
+    if moving_person:
+        still = seeded_demo(task, seed, index, 16, camera_hz=1e-3)
+        if still.spec.poses == st.spec.poses:
+            path = demonstration(still, n_waypoints)[2]
+            still_traj = np.concatenate([project(path, K, st.T_base_camera, PINHOLE, (size, size)), path], 1)
     return ReplayScene(
         name=fresh_name(task, index), task=task,
         rgb=cv2.resize(rgb, (size, size), interpolation=cv2.INTER_AREA).astype(np.uint8),
@@ -100,7 +109,14 @@ def recorded_scene(task: str, index: int, seed: int, camera_size: int, size: int
         object_names=names, objects=poses, duration_s=float(ee_t[-1]), traj3d=traj3d,
         traj2d=project(traj3d, K, st.T_base_camera, PINHOLE, (size, size)), K=K, T_base_camera=st.T_base_camera,
         camera_hz=camera_hz, ee_t=ee_t, ee_pos=ee_p, command_t=np.array([t for t, _a in st.actions]),
-        command=np.array([a[:3] for _t, a in st.actions]), person=dict(st.spec.person))
+        command=np.array([a[:3] for _t, a in st.actions]), person=dict(st.spec.person), still_traj=still_traj)
+
+
+def demonstration(st, n_waypoints: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps, measured tcp, the same as n_waypoints over the demonstration's span) of a recorded demonstration."""
+    ee_t = np.array([t for t, _p, _q in st.ee])
+    ee_p = np.array([p for _t, p, _q in st.ee])
+    return ee_t, ee_p, resample(ee_t, ee_p, 0.0, float(ee_t[-1]), n_waypoints)
 
 
 def initial_poses(st) -> tuple[list[str], np.ndarray]:
