@@ -62,7 +62,9 @@ STUDY_FILES = {"metrics/seed0/eval_details.json": "eval_details.json",
 CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_loop_details.json",
                      "metrics/replay_moving_closed_loop_details.json": "replay_moving_closed_loop_details.json",
                      "metrics/replay_moving_open_details.json": "replay_moving_open_details.json",
-                     "reports/report.md": "report.md", "reports/history.md": "history.md"}
+                     "reports/report.md": "report.md", "reports/history.md": "history.md",
+                     # the open-loop reference: the default pipeline's replay of the same scenes in that run
+                     "../../metrics/replay_details.json": "replay_open_details.json"}
 OPEN_LOOP_OF = {"fm_cnn": "fm_cnn/euler-1", "dp_cnn": "dp_cnn/ddpm-16", "bc_cnn": "bc_cnn"}
 
 
@@ -143,10 +145,11 @@ def tables(results: Path) -> dict[str, str]:
     closed = results / "closed_loop"
     if (closed / "replay_closed_loop_details.json").exists():
         cl = _load(closed / "replay_closed_loop_details.json")
-        out["closed-loop-fresh"] = closed_loop_table(rp, cl)
+        ol = _load(closed / "replay_open_details.json") if (closed / "replay_open_details.json").exists() else rp
+        out["closed-loop-fresh"] = closed_loop_table(ol, cl)
         moving = [closed / f"replay_moving_{k}_details.json" for k in ("open", "closed_loop")]
         if all(m.exists() for m in moving):
-            out["moving-person"] = moving_person_lines(rp, cl, *map(_load, moving))
+            out["moving-person"] = moving_person_lines(ol, cl, *map(_load, moving))
     return {k: "\n".join(v) for k, v in out.items() if v}
 
 
@@ -165,23 +168,29 @@ def study_tables(study: Path) -> dict[str, list[str]]:
     return out
 
 
+def keep(pipeline: Path, files: dict[str, str], logs: str, into: Path) -> None:
+    """Copy a pipeline's files present (its path -> the name kept) and its training logs (a glob under
+    metrics/train, kept with their folders) into `into`, every JSON read before any file is copied."""
+    present = [k for k in files if (pipeline / k).is_file()]
+    for src in present:
+        if src.endswith(".json"):
+            _load(pipeline / src)
+    for src in present:
+        with atomic_path(into / files[src]) as tmp:
+            shutil.copyfile(pipeline / src, tmp)
+    train = pipeline / "metrics" / "train"
+    for log in sorted(train.glob(logs)):
+        with atomic_path(into / "train" / log.relative_to(train)) as tmp:
+            shutil.copyfile(log, tmp)
+
+
 def save_study(pipeline: Path, results: Path) -> None:
     """Keep the study's details, reports and training logs in RESULTS/study (all readable before any is copied)."""
     required = list(STUDY_FILES)[:2]  # seed 0's evaluation and replay; the seeds and the closed loop may follow
     missing = [k for k in required if not (pipeline / k).is_file()]
     if missing:
         raise AdlError(f"{pipeline}: the study has not finished ({missing[0]} missing); run dvc repro there first")
-    present = [k for k in STUDY_FILES if (pipeline / k).is_file()]
-    for src in present:
-        if src.endswith(".json"):
-            _load(pipeline / src)
-    for src in present:
-        name = STUDY_FILES[src]
-        with atomic_path(results / "study" / name) as tmp:
-            shutil.copyfile(pipeline / src, tmp)
-    for log in sorted((pipeline / "metrics" / "train").glob("*/*.csv")):
-        with atomic_path(results / "study" / "train" / log.parent.name / log.name) as tmp:
-            shutil.copyfile(log, tmp)
+    keep(pipeline, STUDY_FILES, "*/*.csv", results / "study")
 
 
 def save_closed_loop(pipeline: Path, results: Path) -> None:
@@ -190,16 +199,7 @@ def save_closed_loop(pipeline: Path, results: Path) -> None:
     first = next(iter(CLOSED_LOOP_FILES))
     if not (pipeline / first).is_file():
         raise AdlError(f"{pipeline}: the closed loop has not been replayed ({first} missing); run dvc repro there")
-    present = [k for k in CLOSED_LOOP_FILES if (pipeline / k).is_file()]
-    for src in present:
-        if src.endswith(".json"):
-            _load(pipeline / src)
-    for src in present:
-        with atomic_path(results / "closed_loop" / CLOSED_LOOP_FILES[src]) as tmp:
-            shutil.copyfile(pipeline / src, tmp)
-    for log in sorted((pipeline / "metrics" / "train").glob("*.csv")):
-        with atomic_path(results / "closed_loop" / "train" / log.name) as tmp:
-            shutil.copyfile(log, tmp)
+    keep(pipeline, CLOSED_LOOP_FILES, "*.csv", results / "closed_loop")
 
 
 def _block(name: str) -> re.Pattern:

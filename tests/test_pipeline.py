@@ -68,7 +68,7 @@ def side_pipeline(root: Path, name: str, **params: object) -> Path:
 
 @pytest.fixture(scope="module")
 def closed_loop(pipeline: Path) -> Path:
-    return side_pipeline(pipeline, "closed_loop", closed_loop={"execute": "8 16", "epochs": 2})
+    return side_pipeline(pipeline, "closed_loop", closed_loop={"execute": "8 16", "moving_execute": "8", "epochs": 2})
 
 
 @pytest.fixture(scope="module")
@@ -212,13 +212,15 @@ def test_plots_render_the_loss_curves(pipeline: Path) -> None:
     assert any("Train and test loss" in n for n in names) and any("vs sampling steps" in n for n in names)
 
 
-def test_inspect_writes_a_readable_rerun_recording(closed_loop: Path, pipeline: Path, tmp_path: Path) -> None:
+def test_inspect_writes_a_readable_rerun_recording(pipeline: Path, tmp_path: Path) -> None:
     from rerun.chunk import RrdReader
 
-    rrd = tmp_path / "preds.rrd"  # replay's verdicts on recorded test episodes: the closed-loop study's open loop
+    rrd, verdicts = tmp_path / "preds.rrd", tmp_path / "replay_details.json"  # replay's on recorded test episodes
+    run_module("replay", "--models", pipeline / "models" / "fm_cnn", "--data", pipeline / "data" / "adl.h5",
+               "--fm-steps", "1", "--metrics", tmp_path / "m.json", "--details", verdicts,
+               "--table", tmp_path / "t.md", check=True)
     run_module("inspect", "--model", pipeline / "models" / "fm_cnn", "--data", pipeline / "data" / "adl.h5",
-               "--episodes", "0", "1", "--samples", "3", "--replay",
-               closed_loop / "metrics" / "replay_open_details.json", "-o", rrd, check=True)
+               "--episodes", "0", "1", "--samples", "3", "--replay", verdicts, "-o", rrd, check=True)
     reader = RrdReader(str(rrd))
     summary = reader.store().summary()
     for entity in ("/world/replay", "/world/camera", "/world/camera/image", "/world/camera/image/rgb",
@@ -272,7 +274,7 @@ def test_closed_loop_replay_replans_from_new_images(closed_loop: Path, pipeline:
     assert moving["scenes"]["moving_person"] and set(moving["tasks"]) == set(root["tasks"])
     assert moving["success"]["oracle-command/Ta-8"]["overall"] >= 0.9, moving["success"]
     section = report.split("## The person who moves")[1]
-    for row in ("| open loop: demo-still-person |", "| open loop: fm_cnn/euler-1 |", "| closed loop: bc_cnn/Ta-16 |",
+    for row in ("| open loop: demo-still-person |", "| open loop: fm_cnn/euler-1 |", "| closed loop: bc_cnn/Ta-8 |",
                 "| closed loop: oracle-command/Ta-8 |"):
         assert row in section, row
 

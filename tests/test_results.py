@@ -12,7 +12,7 @@ def test_readme_tables_agree_with_the_committed_results() -> None:
     proc = run_module("results", "--check")
     assert proc.returncode == 0, proc.stderr
     readme = (REPO / "README.md").read_text()
-    for name in ("default", "blind", "per-task", "safety", "seeds"):
+    for name in ("default", "blind", "per-task", "safety", "seeds", "closed-loop-fresh", "moving-person"):
         assert f"<!-- results:{name} -->" in readme, name
 
 
@@ -36,4 +36,14 @@ def test_save_from_a_run_missing_a_file_copies_nothing(tmp_path: Path) -> None:
     results = tmp_path / "results"
     proc = run_module("results", "--save-from", run, "--results", results, "--readme", tmp_path / "none.md")
     assert proc.returncode != 0 and "replay_details.json" in one_line_error(proc)
+    assert not results.exists()
+
+
+def test_save_closed_loop_before_its_replay_copies_nothing(tmp_path: Path) -> None:
+    pipeline = tmp_path / "closed_loop"
+    (pipeline / "metrics").mkdir(parents=True)
+    results = tmp_path / "results"
+    proc = run_module("results", "--save-closed-loop", pipeline, "--results", results, "--readme",
+                      tmp_path / "none.md")
+    assert proc.returncode != 0 and "replay_closed_loop_details.json missing" in one_line_error(proc)
     assert not results.exists()

@@ -26,7 +26,9 @@ MOVING_M = 0.01  # a window whose demonstrated plan moves the arm less than this
 def plan_lengths(model_dir: Path, checkpoint: str, data: Path, names: list[str], execute: int, steps: int,
                  frames_per_episode: int = 12, seed: int = 0) -> dict[str, np.ndarray]:
     """Per window: "demo" the demonstration's path over the first `execute` waypoints of the plan (metres), "true"
-    the model's with its true history, "frozen" the model's with a history showing the arm standing still."""
+    the model's with its true history, "frozen" the model's with a history showing the arm standing still, "error"
+    how far the model's waypoint `execute` (true history) lies from the demonstration's (metres), "first" 1 for an
+    episode's first frame (the arm at home: the plan that has to find the object or the person)."""
     placement = Placement()
     policy, ck = load_policy(model_dir / checkpoint, placement)
     cfg = policy.cfg
@@ -35,7 +37,7 @@ def plan_lengths(model_dir: Path, checkpoint: str, data: Path, names: list[str],
                        Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz, cfg.target), cfg.use_depth,
                        frames_per_episode=frames_per_episode)
     per_frame = cfg.in_channels // cfg.n_obs
-    out: dict[str, list[float]] = {"demo": [], "true": [], "frozen": []}
+    out: dict[str, list[float]] = {"demo": [], "true": [], "frozen": [], "error": [], "first": []}
     gen = placement.generator(seed)
     for i in range(len(ds)):
         e, k = ds.window(i)
@@ -43,10 +45,13 @@ def plan_lengths(model_dir: Path, checkpoint: str, data: Path, names: list[str],
         frozen_obs = np.concatenate([obs[-per_frame:]] * cfg.n_obs)
         frozen_state = np.repeat(state[-1:], cfg.n_obs, axis=0)
         out["demo"].append(_length(target[:execute, 2:]))
+        out["first"].append(float(k == 0))
         for key, (o, s) in (("true", (obs, state)), ("frozen", (frozen_obs, frozen_state))):
             x = (torch.from_numpy(o.astype(np.float32))[None], ds.normalize_state(s)[None])
             plan = norm.unnormalize(predict(policy, x, steps, None, gen, placement))[0, :execute, 2:].numpy()
             out[key].append(_length(plan))
+            if key == "true":
+                out["error"].append(float(np.linalg.norm(plan[-1] - target[execute - 1, 2:])))
     return {k: np.array(v) for k, v in out.items()}
 
 

@@ -91,8 +91,9 @@ def closed_loop_lines(open_rp: dict, cl: dict) -> list[str]:
         lines.append(f"| {label} | {rate_cell(sum(got), len(got))} n={len(got)} | " + " | ".join(cells) + " |")
     training = cl.get("training", {})
     late = [m for m, t in training.items() if not t.get("converged")]
-    lines += ["", f"The same {len(names)} test episodes for every row. Closed-loop models: To frames in, Tp waypoints "
-              "out at a fixed rate, Ta executed before re-planning (Ta = Tp: one plan per Tp waypoints). "
+    lines += ["", f"The same {len(names)} scenes for every row. Closed-loop models: To frames in, Tp waypoints "
+              "out at a fixed rate, Ta executed before re-planning (Ta = Tp: one plan per Tp waypoints); below, each "
+              "model's best Ta on these very scenes (a pick that favours closed loop). "
               + (f"Not converged: {', '.join(late)}." if late else "All closed-loop models converged."), ""]
     open_per = open_rp.get("per_episode", {})
     for model, label in (("fm_cnn", "fm_cnn/euler-1"), ("dp_cnn", "dp_cnn/ddpm-16"), ("bc_cnn", "bc_cnn")):

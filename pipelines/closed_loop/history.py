@@ -1,7 +1,8 @@
 """The closed-loop models' plans with their true observation history and with one that shows the arm standing still,
 on the recorded test episodes (adlpipe.evaluation.history): does a model copy the motion it sees?
 
-    python history.py models/fm_cnn models/dp_cnn models/bc_cnn --execute 8 -o metrics/history.json --table reports/history.md
+    python history.py models/fm_cnn models/dp_cnn models/bc_cnn --execute 8 -o metrics/history.json \
+        --table reports/history.md
 """
 
 from __future__ import annotations
@@ -35,17 +36,22 @@ def main(argv: list[str]) -> int:
         moving = got["demo"] > MOVING_M
         true, frozen = got["true"][moving] / got["demo"][moving], got["frozen"][moving] / got["demo"][moving]
         out[d.name] = {k: v.round(4).tolist() for k, v in got.items()}
+        first = got["first"] > 0
         rows.append(f"| {d.name} | {moving.sum()} | {median_cell(true, 2)} | {median_cell(frozen, 2)} | "
-                    f"{median_cell(100 * got['true'][~moving], 1)} | {median_cell(100 * got['frozen'][~moving], 1)} |")
+                    f"{median_cell(100 * got['true'][~moving], 1)} | {median_cell(100 * got['frozen'][~moving], 1)} | "
+                    f"{median_cell(100 * got['error'][first], 1)} | {median_cell(100 * got['error'][~first], 1)} |")
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(out))
     args.table.parent.mkdir(parents=True, exist_ok=True)
     args.table.write_text("\n".join([
         f"Over {len(names)} recorded test episodes, 12 evenly spaced frames each; Ta = {args.execute} waypoints. "
         f"Moving: windows whose demonstrated plan moves the arm at least {100 * MOVING_M:.0f} cm; ratio: the model's "
-        "plan path over the demonstration's (median [95 %]). Dwell: the other windows, the plan's path in cm.", "",
+        "plan path over the demonstration's (median [95 %]). Dwell: the other windows, the plan's path in cm. Error: "
+        f"how far the plan's waypoint {args.execute} lies from the demonstration's, cm, from an episode's first frame "
+        "(the arm at home) and from the others.", "",
         "| model | moving windows | ratio, true history | ratio, history standing still | dwell cm, true | "
-        "dwell cm, standing still |", "| --- | ---: | ---: | ---: | ---: | ---: |", *rows, ""]))
+        "dwell cm, standing still | error cm, first frame | error cm, other frames |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |", *rows, ""]))
     print("\n".join(rows))
     return 0
 
