@@ -169,8 +169,10 @@ def open_loop_jobs(args: argparse.Namespace, split: dict, scenes: list[ReplaySce
                    checkpoint: str, placement: Placement) -> tuple[list[tuple], dict[str, np.ndarray]]:
     """Every (policy, scene, timing) replay, with each policy's predicted waypoints (u, v, x, y, z) per scene."""
     trajs = {"demo": np.stack([np.concatenate([s.traj2d, s.traj3d], 1) for s in scenes])}
-    if scenes and all(s.still_traj is not None for s in scenes):  # the person moves: open loop's ceiling
-        trajs[STILL_DEMO] = np.stack([s.still_traj for s in scenes])
+    if any(s.still_traj is not None for s in scenes):  # the person moves: open loop's ceiling, on the scenes whose
+        # still twin is the same scene (NaN: the demonstrator failed with the person moving and the scene was redrawn)
+        nan = np.full_like(trajs["demo"][0], np.nan)
+        trajs[STILL_DEMO] = np.stack([nan if s.still_traj is None else s.still_traj for s in scenes])
     try:
         trajs[BLIND] = blind_predictions(task_means(args.data, split["train"]), [s.task for s in scenes])
     except AdlError as exc:  # a test task without training episodes: no floor to state
@@ -185,6 +187,8 @@ def open_loop_jobs(args: argparse.Namespace, split: dict, scenes: list[ReplaySce
     jobs = []
     for label, traj in trajs.items():
         for i, s in enumerate(scenes):
+            if np.isnan(traj[i]).any():
+                continue
             if "demo" in args.speed_profile:
                 jobs.append((label, s.name, s.task, s.object_names, s.objects, traj[i, :, 2:], s.duration_s,
                              s.person))
