@@ -25,10 +25,17 @@ Every replayed episode keeps which parts of the predicate failed and its peak fo
 breaks failures down by part, safety first (adlpipe.evaluation.outcomes), and --failures writes a PNG strip per
 policy of a few failed episodes.
 
-Closed loop (--closed-loop TA [TA ...], models trained with train --closed-loop): the camera renders at the
-recorded rate; from its last To frames and the end effector's position at each, the policy predicts the next Tp
-waypoints (relative to where the end effector is); the arm executes TA of them and the policy re-plans, until the
-demonstration's duration has passed. Each TA is a row of the table (the seed's Ta sweep).
+Closed loop (--closed-loop TA [TA ...], models trained with train --closed-loop), on the recorded test split or on
+fresh scenes (--scenes): the camera renders at the recorded rate (a fresh scene's: --scene-camera-hz, by default the
+test episodes'); from its last To frames and the end effector's position at each, the policy predicts the next Tp
+waypoints (relative to the last command); the arm executes TA of them and the policy re-plans, until the
+demonstration's duration (times --time-limit) has passed. Each TA is a row of the table (the seed's Ta sweep);
+replay's failure table says, per re-plan, how far the plan moves the arm against the demonstration from the same
+phase, on and off the demonstrated path.
+
+The person who moves (--moving-person, with --scenes): the same fresh scenes with the manikin's head and forearm
+moving during the episode (adlpipe.sim.person), open or closed loop; open loop adds the row demo-still-person, the
+still person's demonstration of the same scene run with the person moving (a perfect first-frame plan).
 """
 
 from __future__ import annotations
