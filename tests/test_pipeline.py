@@ -141,7 +141,7 @@ def test_the_demonstrations_replay_successfully(pipeline: Path) -> None:
     assert json.loads((pipeline / "metrics" / "replay.json").read_text())["success"]["demo"] == rp["success"]["demo"][
         "overall"]
     assert {"fm_cnn/euler-1", "fm_cnn/euler-16", "dp_cnn/ddpm-16", "bc_cnn"} <= set(rp["success"])
-    assert rp["scenes"] == {"kind": "fresh", "per_task": 1, "seed": 0}
+    assert rp["scenes"] == {"kind": "fresh", "per_task": 1, "seed": 0, "moving_person": False}
     split = json.loads((pipeline / "data" / "split.json").read_text())
     assert not set(rp["per_episode"]["demo"]) & set(split["test"] + split["train"])
     assert sorted(rp["per_episode"]["demo"])[0] == "fresh/brush_the_teeth/1000000"
