@@ -31,7 +31,7 @@ def make_scene(spec: SceneSpec, width: int = 224, height: int = 224,
     ctrl = ArmController(model, data)
     ctrl.reset_home()
     if spec.person:
-        ctrl.person = person_mover(model, spec)
+        ctrl.person = mover(model, spec)
     return ctrl, Scene(model, data, spec)
 
 
@@ -81,7 +81,7 @@ def demonstrator_path(task: Task, scene: Scene) -> tuple[Callable, float]:
         return keypoint_path(HOME_TCP.copy(), keypoints)
     probe = mujoco.MjData(scene.m)
     probe.qpos[:], probe.mocap_pos[:], probe.mocap_quat[:] = scene.d.qpos, scene.d.mocap_pos, scene.d.mocap_quat
-    move, probe_scene = person_mover(scene.m, scene.spec), Scene(scene.m, probe, scene.spec)
+    move, probe_scene = mover(scene.m, scene.spec), Scene(scene.m, probe, scene.spec)
 
     def at(t: float) -> list[tuple[np.ndarray, float]]:
         move(probe, t)
@@ -89,10 +89,6 @@ def demonstrator_path(task: Task, scene: Scene) -> tuple[Callable, float]:
         return task.tcp_keypoints(probe_scene)
 
     return keypoint_path(HOME_TCP.copy(), keypoints, at)
-
-
-def person_mover(model: mujoco.MjModel, spec: SceneSpec) -> Callable[[mujoco.MjData, float], None]:
-    return mover(model, spec.poses["manikin"], spec.person)
 
 
 def waypoint_path(waypoints: np.ndarray, duration: float) -> Callable:

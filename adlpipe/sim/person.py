@@ -78,17 +78,20 @@ def local_rotations(person: dict[str, float], t: float) -> tuple[np.ndarray, np.
     return head, _quat(forearm_axis(), a * person["arm_lift"])
 
 
-def mover(model: mujoco.MjModel, manikin: tuple[float, float, float, float],
-          person: dict[str, float]) -> Callable[[mujoco.MjData, float], None]:
-    """fn(data, t): put the head and forearm mocap bodies where the person has them at time t."""
+def pivot_in_base(manikin: tuple[float, float, float, float], pivot: np.ndarray) -> np.ndarray:
+    """Where a pivot given in the manikin's frame lies in base_link, the manikin at (x, y, z, yaw)."""
     x, y, z, yaw = manikin
-    base_q = _quat([0, 0, 1], yaw)
+    w = np.zeros(3)
+    mujoco.mju_rotVecQuat(w, np.asarray(pivot, float), _quat([0, 0, 1], yaw))
+    return w + [x, y, z]
+
+
+def mover(model: mujoco.MjModel, spec) -> Callable[[mujoco.MjData, float], None]:  # noqa: ANN001 - a SceneSpec
+    """fn(data, t): put the head and forearm mocap bodies where the person of `spec` has them at time t."""
+    manikin, person = spec.poses["manikin"], spec.person
+    base_q = _quat([0, 0, 1], manikin[3])
     ids = [model.body_mocapid[model.body(n).id] for n in (HEAD_BODY, FOREARM_BODY)]
-    pivots = []
-    for p in (NECK, ELBOW):
-        w = np.zeros(3)
-        mujoco.mju_rotVecQuat(w, p, base_q)
-        pivots.append(w + [x, y, z])
+    pivots = [pivot_in_base(manikin, p) for p in (NECK, ELBOW)]
 
     def move(data: mujoco.MjData, t: float) -> None:
         for mid, pivot, q in zip(ids, pivots, local_rotations(person, t), strict=True):

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .person import ELBOW, FOREARM_BODY, HAND, HEAD_BODY, NECK
+from .person import ELBOW, FOREARM_BODY, HAND, HEAD_BODY, NECK, pivot_in_base
 
 # Fixed geometry (metres, base_link frame).
 TABLE_TOP_Z = 0.0
@@ -184,11 +184,10 @@ def _manikin_xml(x: float, y: float, z: float, yaw: float, moving: bool = False)
     if not moving:
         return (f'<body name="manikin" pos="{x} {y} {z}" quat="{quat}">{torso}{_parts(_HEAD_GEOMS)}'
                 f"{_parts(_FOREARM_GEOMS)}{right}{_sites(_HEAD_SITES)}{_sites(_FOREARM_SITES)}{hand_rest}</body>")
-    rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
     out = f'<body name="manikin" pos="{x} {y} {z}" quat="{quat}">{torso}{right}{hand_rest}</body>'
     for name, pivot, geoms, sites in ((HEAD_BODY, NECK, _HEAD_GEOMS, _HEAD_SITES),
                                       (FOREARM_BODY, ELBOW, _FOREARM_GEOMS, _FOREARM_SITES)):
-        at = np.array([x, y, z]) + rot @ pivot
+        at = pivot_in_base((x, y, z, yaw), pivot)
         out += (f'<body name="{name}" mocap="true" pos="{_xyz(at)}" quat="{quat}">{_parts(geoms, pivot)}'
                 f"{_sites(sites, pivot)}</body>")
     return out
