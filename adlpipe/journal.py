@@ -70,3 +70,15 @@ class Journal:
     def close(self) -> None:
         """The stage wrote its outputs: nothing to resume."""
         self.path.unlink(missing_ok=True)
+
+
+class Section:
+    """The part of a journal under one key prefix (a sequential replay's batch), with the journal's interface."""
+
+    def __init__(self, journal: Journal, prefix: str) -> None:
+        self.journal, self.prefix = journal, prefix
+        self.done = {k[len(prefix):]: v for k, v in journal.done.items() if k.startswith(prefix)}
+
+    def add(self, key: str, value: object) -> None:
+        self.journal.add(self.prefix + key, value)
+        self.done[key] = value

@@ -44,8 +44,10 @@ SEEDED_WORLDS = {"pusht": ("push_the_T", PUSHT_TOPICS), "kitchen": ("franka_kitc
 
 
 def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format: str, episode_index: int,
-                      topics: TopicMap = TopicMap()) -> Path:  # noqa: B008 - frozen dataclass
-    """Write one recorded episode (adlpipe.sim.episode.Streams) as a bag."""
+                      topics: TopicMap = TopicMap(),  # noqa: B008 - frozen dataclass
+                      outcome: list[tuple[str, str, object]] | None = None) -> Path:
+    """Write one recorded episode (adlpipe.sim.episode.Streams) as a bag; `outcome`: (topic, type, value) messages
+    (std_msgs String or Bool) written after its last frame, as a trial bag carries them (adlpipe.trials)."""
     t0 = BASE_TIME_NS + episode_index * 100 * 10**9
     ns = lambda t: t0 + int(round(t * 1e9))  # noqa: E731
     w = BagWriter(path, fmt)
@@ -102,6 +104,10 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
                 tn = ns(t)
                 events.append((tn, 8, topics.joints, M.JOINT_STATE,
                                lambda tn=tn, qp=qp, qv=qv: f.joint_state(tn, st.joint_names, qp, qv)))
+        end = ns(max(t for t, _, _ in st.camera) + 0.01)
+        for topic, msgtype, value in outcome or []:
+            events.append((end, 10, topic, msgtype, lambda v=value, b=msgtype == M.BOOL: f.boolean(v) if b
+                           else f.string(str(v))))
         events.sort(key=lambda e: (e[0], e[1]))
         w.declare_counts(Counter(topic for _, _, topic, _, _ in events))
         for tn, _, topic, msgtype, build in events:

@@ -33,6 +33,11 @@ demonstration's duration (times --time-limit) has passed. Each TA is a row of th
 replay's failure table says, per re-plan, how far the plan moves the arm against the demonstration from the same
 phase, on and off the demonstrated path.
 
+Until decided (--until-decided, open loop on fresh scenes): fresh scenes in batches of --batch per task, every
+policy on the same scenes, until the decision rule (adlpipe.evaluation.decision: safety, then success with a
+--margin non-inferiority margin, then latency from --eval) is decided by its anytime-valid tests, or --scenes per task
+(the cap) are replayed. The details say where it stopped and why.
+
 The person who moves (--moving-person, with --scenes): the same fresh scenes with the manikin's head and forearm
 moving during the episode (adlpipe.sim.person), open or closed loop; open loop adds the row demo-still-person, the
 still person's demonstration of the same scene run with the person moving (a perfect first-frame plan).
@@ -43,6 +48,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -54,7 +60,8 @@ from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, float_range, int_range
 from .dataset import schema
 from .dataset.splits import load_split
 from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, run_cli
+from .errors import AdlError, read_json_object, run_cli
+from .evaluation.decision import Rule, decide_replay
 from .evaluation.jobs import run_jobs, success_summary
 from .evaluation.outcomes import failure_sections, failure_strips, success_table
 from .evaluation.replay import (
@@ -70,7 +77,7 @@ from .evaluation.replay import (
 )
 from .evaluation.scenes import STILL_DEMO, ReplayScene, fresh_scene, from_episode
 from .evaluation.tables import FIXED
-from .journal import Journal, fingerprint
+from .journal import Journal, Section, fingerprint
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import label_of, predict_episodes, predict_scenes, steps_for
@@ -106,6 +113,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--moving-person", action="store_true",
                    help="fresh scenes (--scenes) in which the person moves: the head turns and nods and the forearm "
                    "lifts during the episode (adlpipe.sim.person; record --moving-person records such demonstrations)")
+    p.add_argument("--until-decided", action="store_true",
+                   help="open loop on fresh scenes: replay batches of --batch scenes per task until the decision rule "
+                   "is decided (or --scenes per task, the cap, are replayed)")
+    p.add_argument("--batch", type=POSITIVE, default=5, help="--until-decided: fresh scenes per task per batch")
+    p.add_argument("--eval", type=Path, default=Path("metrics/eval_details.json"),
+                   help="--until-decided: evaluate's details, for each policy's default sampler and latency")
+    p.add_argument("--margin", type=float_range(0.0, 0.5), default=0.05,
+                   help="--until-decided: the non-inferiority margin on success (default 0.05: 5 points)")
+    p.add_argument("--alpha", type=float_range(0.001, 0.5), default=0.05,
+                   help="--until-decided: the family-wise error rate per step of the rule (default 0.05)")
     p.add_argument("--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1))
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--speed-profile", nargs="+", choices=["demo", "fixed"], default=["demo"],
@@ -129,6 +146,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.moving_person and not args.scenes:
         raise AdlError("--moving-person: the person's motion is drawn with fresh scenes; add --scenes N")
+    if args.until_decided and (not args.scenes or args.closed_loop):
+        raise AdlError("--until-decided: replays fresh scenes open loop; add --scenes N (the cap per task) and drop "
+                       "--closed-loop")
+    if args.until_decided and not args.eval.is_file():
+        raise AdlError(f"--eval {args.eval}: no such file; --until-decided reads each policy's latency from "
+                       "evaluate's details (python -m adlpipe.evaluate --details ...)")
     return args
 
 
@@ -154,9 +177,11 @@ def _fresh_one(job: tuple) -> ReplayScene:
     return fresh_scene(*job)
 
 
-def fresh_scenes(args: argparse.Namespace, tasks: list[str], names: list[str]) -> list[ReplayScene]:
-    """args.scenes fresh scenes of each task, built in a pool (each runs the demonstrator once per draw), rendered
-    live in closed loop at the rate of the recorded test episodes `names` unless told."""
+def fresh_scenes(args: argparse.Namespace, tasks: list[str], names: list[str],
+                 indices: range | None = None) -> list[ReplayScene]:
+    """Fresh scenes `indices` (default: the first args.scenes) of each task, built in a pool (each runs the
+    demonstrator once per draw), rendered live in closed loop at the rate of the recorded test episodes `names`
+    unless told."""
     from .sim.tasks import TASKS
 
     unknown = [t for t in tasks if t not in TASKS]
@@ -166,7 +191,7 @@ def fresh_scenes(args: argparse.Namespace, tasks: list[str], names: list[str]) -
         size, horizon = int(f.attrs["image_size"]), int(f.attrs["n_waypoints"])
         camera_hz = args.scene_camera_hz or float(np.median([camera_rate(f, n) for n in names]))
     jobs = [(t, i, args.scene_seed, args.scene_camera_size or size, size, horizon, camera_hz, args.moving_person)
-            for t in tasks for i in range(args.scenes)]
+            for t in tasks for i in (indices or range(args.scenes))]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         return list(tqdm(pool.map(_fresh_one, jobs, chunksize=2), total=len(jobs), desc="scenes", unit="scene",
                          file=sys.stderr, disable=None))
@@ -237,6 +262,51 @@ def closed_loop_jobs(args: argparse.Namespace, scenes: list[ReplayScene], checkp
     return jobs
 
 
+def test_tasks(data: Path, names: list[str]) -> list[str]:
+    with schema.open_dataset(data, names) as f:
+        return sorted({str(f[schema.EPISODES][n].attrs["task"]) for n in names})
+
+
+def replay_until_decided(args: argparse.Namespace, split: dict, tasks: list[str], names: list[str], checkpoint: str,
+                         placement: Placement, journal: Journal) -> tuple[list, dict, tuple, dict]:
+    """Batches of fresh scenes, every policy on each, until the decision rule is decided or the cap is reached.
+    Every batch's outcomes go into the journal under its own key, so a killed run resumes at its batch."""
+    ev = read_json_object(args.eval, "evaluate details")
+    rule = Rule(args.margin, args.alpha)
+    scenes: list[ReplayScene] = []
+    trajs: dict[str, list] = {}
+    wins: dict = defaultdict(lambda: defaultdict(list))
+    per_episode: dict = defaultdict(dict)
+    diagnostics: dict = defaultdict(dict)
+    looks, decision = [], None
+    for start in range(0, args.scenes, args.batch):
+        batch = fresh_scenes(args, tasks, names, range(start, min(start + args.batch, args.scenes)))
+        jobs, got = open_loop_jobs(args, split, batch, None, checkpoint, placement)
+        w, pe, dg = run_jobs(replay_one, jobs, args.workers, placement, Section(journal, f"batch{start}:"))
+        scenes += batch
+        for label, traj in got.items():
+            trajs.setdefault(label, []).append(traj)
+        for label in w:
+            for task, oks in w[label].items():
+                wins[label][task] += oks
+            per_episode[label].update(pe[label])
+            diagnostics[label].update(dg.get(label, {}))
+        decision = decide_replay(ev, {"per_episode": per_episode, "diagnostics": diagnostics}, rule)
+        if decision is None:
+            raise AdlError(f"--until-decided: fewer than two of the policies in {args.eval} were replayed; the rule "
+                           "chooses between evaluated models (--models)")
+        looks.append({"scenes": len(scenes), "status": decision["status"], "recommended": decision["recommended"]})
+        print(f"after {len(scenes)} scenes: {decision['status']}"
+              + (f" ({decision['recommended']})" if decision["recommended"] else ""))
+        if decision["status"] == "decided":
+            break
+    reason = (f"decided after {len(scenes)} scenes" if decision["status"] == "decided"
+              else f"the cap ({args.scenes} per task) reached, undecided")
+    sequential = {"batch_per_task": args.batch, "cap_per_task": args.scenes, "scenes": len(scenes),
+                  "reason": reason, "looks": looks, "rule": rule.__dict__}
+    return scenes, {k: np.concatenate(v) for k, v in trajs.items()}, (wins, per_episode, diagnostics), sequential
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     placement = Placement.from_args(args)
@@ -250,36 +320,43 @@ def main(argv: list[str] | None = None) -> int:
         names = every_task_first(args.data, names, args.max_episodes)
     if not names:
         raise AdlError("the test split is empty: nothing to replay")
-    trajs: dict[str, np.ndarray] = {}
-    if args.scenes:
-        with schema.open_dataset(args.data, names) as f:
-            tasks = sorted({str(f[schema.EPISODES][n].attrs["task"]) for n in names})
-        scenes = fresh_scenes(args, tasks, names)
-        person = ", the person moving" if args.moving_person else ""
-        where = f"{args.scenes} fresh scenes per task (seed {args.scene_seed}{person})"
-    else:
-        eps, rates = recorded_episodes(args, names)
-        scenes = closed_loop_scenes(args.data, eps, rates) if args.closed_loop else [from_episode(ep) for ep in eps]
-        where = "test split"
-    if args.closed_loop:
-        worker, jobs = closed_loop_one, closed_loop_jobs(args, scenes, checkpoint, placement)
-    else:
-        worker = replay_one
-        jobs, trajs = open_loop_jobs(args, split, scenes, None if args.scenes else names, checkpoint, placement)
     journal = Journal(args.details, fingerprint(args, [d / checkpoint for d in args.models], split_path, args.data))
     if journal.done:
         print(f"resuming: {len(journal.done)} policies replayed before ({journal.path})")
-    wins, per_episode, diagnostics = run_jobs(worker, jobs, args.workers, placement, journal)
+    trajs: dict[str, np.ndarray] = {}
+    sequential = None
+    if args.until_decided:
+        tasks = test_tasks(args.data, names)
+        scenes, trajs, (wins, per_episode, diagnostics), sequential = replay_until_decided(
+            args, split, tasks, names, checkpoint, placement, journal)
+        where = f"{len(scenes) // len(tasks)} fresh scenes per task (seed {args.scene_seed}), until decided"
+    else:
+        if args.scenes:
+            scenes = fresh_scenes(args, test_tasks(args.data, names), names)
+            person = ", the person moving" if args.moving_person else ""
+            where = f"{args.scenes} fresh scenes per task (seed {args.scene_seed}{person})"
+        else:
+            eps, rates = recorded_episodes(args, names)
+            scenes = (closed_loop_scenes(args.data, eps, rates) if args.closed_loop
+                      else [from_episode(ep) for ep in eps])
+            where = "test split"
+        if args.closed_loop:
+            worker, jobs = closed_loop_one, closed_loop_jobs(args, scenes, checkpoint, placement)
+        else:
+            worker = replay_one
+            jobs, trajs = open_loop_jobs(args, split, scenes, None if args.scenes else names, checkpoint, placement)
+        wins, per_episode, diagnostics = run_jobs(worker, jobs, args.workers, placement, journal)
     result = success_summary(wins)
     strips = {} if args.closed_loop else failure_strips(args.failures, scenes, trajs, diagnostics, per_episode,
                                                         args.strip)
-    kind = ({"kind": "fresh", "per_task": args.scenes, "seed": args.scene_seed, "moving_person": args.moving_person}
-            if args.scenes else {"kind": "recorded"})
+    kind = ({"kind": "fresh", "per_task": len(scenes) // len({s.task for s in scenes}), "seed": args.scene_seed,
+             "moving_person": args.moving_person} if args.scenes else {"kind": "recorded"})
     write_all_atomic({**strips,
         args.details: json_text({"episodes": len(scenes), "checkpoint": args.checkpoint, "scenes": kind,
                                  "success": result, "tasks": {s.name: s.task for s in scenes},
                                  "per_episode": per_episode, "diagnostics": diagnostics,
-                                 "training": training_summary(args.models)}),
+                                 "training": training_summary(args.models),
+                                 **({"sequential": sequential} if sequential else {})}),
         args.metrics: json_text({"episodes": len(scenes), "checkpoint": args.checkpoint, "scenes": kind["kind"],
                                  "success": {label: round(r["overall"], 4) for label, r in result.items()}}),
         args.table: success_table(result, scenes, bool(args.closed_loop), args.checkpoint, where)

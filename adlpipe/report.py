@@ -23,10 +23,11 @@ import sys
 from pathlib import Path
 
 from .atomic import check_outputs, write_all_atomic
-from .cli import Parser
+from .cli import Parser, float_range
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import UNDERTRAINED_RATIO, claims, convergence_lines
+from .evaluation.decision import Rule, decide_replay
 from .evaluation.figures import figures
 from .evaluation.outcomes import breakdown_lines
 from .evaluation.person import moving_person_lines
@@ -55,6 +56,18 @@ def replay_scenes(rp: dict) -> str:
     return f"{rp['episodes']} recorded test episodes"
 
 
+def decision_section(decision: dict | None, rp: dict) -> list[str]:
+    """Which policy to deploy, by the stated rule (adlpipe.evaluation.decision), and what it is about."""
+    if decision is None:
+        return []
+    stopped = rp.get("sequential")
+    how = (f" Replay ran until decided: it stopped after {stopped['scenes']} scenes ({stopped['reason']})."
+           if stopped else "")
+    return ["## The decision: which policy to put on the robot", "", *decision["lines"], "",
+            "This is about these trained checkpoints on these scenes (what a lab deploys); whether a method is better "
+            "needs the training seeds of pipelines/study." + how, ""]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = Parser("python -m adlpipe.report", __doc__)
     p.add_argument("--eval", type=Path, default=Path("metrics/eval_details.json"))
@@ -70,6 +83,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--table2-closed-loop", type=Path, default=Path("reports/table2_closed_loop.md"))
     p.add_argument("--failures", type=Path, help="replay's folder of failure strips (PNG), linked from the report")
     p.add_argument("--summary", type=Path, help="folder for one JSON per policy, the rows of `dvc metrics show`")
+    p.add_argument("--margin", type=float_range(0.0, 0.5), default=0.05,
+                   help="the decision's non-inferiority margin on success, as a fraction (default 0.05: 5 points)")
+    p.add_argument("--alpha", type=float_range(0.001, 0.5), default=0.05,
+                   help="the decision's family-wise error rate per step (default 0.05)")
     p.add_argument("-o", "--output", type=Path, default=Path("reports/report.md"))
     p.add_force()
     args = p.parse_args(argv)
@@ -87,13 +104,15 @@ def main(argv: list[str] | None = None) -> int:
         raise AdlError(f"{what}: holds no usable figures (no evaluated model rows / no replayed policy): nothing to "
                        "report; re-run evaluate and replay")
     figs = figures(ev, read, args.output.parent / "figures")
+    decision = decide_replay(ev, rp, Rule(args.margin, args.alpha))
     parts = ["# adlpipe report", "",
              f"Test episodes: {ev['n_test']} (error); replay: {replay_scenes(rp)}, {rp.get('checkpoint', 'best')} "
              "checkpoints. Figures of the best validation checkpoints with each model's default sampler.", "",
              "## Headline: each model's default sampler, best checkpoint", "", *headline_lines(ev, rp), "",
              "Replay success: open loop over the demonstration's own duration (which no deployed policy knows); at a "
              "fixed speed: the same trajectory over its own path length at the task's median demonstrated speed.",
-             "", "## The paper's claims on this data", "", *compared, "",
+             "", *decision_section(decision, rp),
+             "## The paper's claims on this data", "", *compared, "",
              "## Convergence (same optimiser steps for every model)", "", *convergence_lines(ev), "",
              "A model is converged when its best val px fell by at most 2 % over the last fifth of training; a claim "
              "involving a model that is not, or a generative U-Net model more than "
@@ -127,7 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     for t in (args.table2, args.table2_closed_loop):
         if t.exists():
             parts += [read_table(t).replace("# ", "## ", 1), ""]
-    summary = {args.summary / f"{k}.json": v for k, v in summary_files(ev, rp, cl).items()} if args.summary else {}
+    summary = ({args.summary / f"{k}.json": v for k, v in summary_files(ev, rp, cl, decision).items()}
+               if args.summary else {})
     write_all_atomic({args.output: "\n".join(parts), **summary, **figs})
     print("\n".join(compared))
     return 0

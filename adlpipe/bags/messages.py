@@ -12,6 +12,7 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF = "tf2_msgs/msg/TFMessage"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
+BOOL = "std_msgs/msg/Bool"
 
 
 def typestore(ros_version: int):  # noqa: ANN201 - rosbags Typestore
@@ -94,3 +95,6 @@ class MessageFactory:
 
     def string(self, text: str) -> object:
         return self.T[STRING](data=text)
+
+    def boolean(self, value: bool) -> object:
+        return self.T[BOOL](data=bool(value))

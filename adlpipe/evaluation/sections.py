@@ -121,10 +121,14 @@ def grasp_tasks() -> set[str]:
     return {t.name for t in TASKS.values() if t.tool is None or t.touches}
 
 
-def summary_files(ev: dict, rp: dict, cl: dict) -> dict[str, str]:
+def summary_files(ev: dict, rp: dict, cl: dict, decision: dict | None = None) -> dict[str, str]:
     """policy -> the JSON `dvc metrics show` prints as one row: px, cm, ms, success (open loop; closed loop: the best
-    Ta's), converged."""
+    Ta's), converged; and the decision's row (adlpipe.evaluation.decision), when there is one."""
     out: dict[str, dict] = {}
+    if decision is not None:
+        out["decision"] = {"recommended": decision["recommended"] or "undecided", "status": decision["status"],
+                           "scenes": decision["n"], "more_scenes_needed": decision["needs"],
+                           "margin": decision["rule"]["margin"], "alpha": decision["rule"]["alpha"]}
     success = rp.get("success", {})
     if "demo" in success:
         out["demo"] = {"success": round(success["demo"]["overall"], 4)}

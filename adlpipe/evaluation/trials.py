@@ -1,0 +1,145 @@
+"""Trials on a real robot: each trial's policy and outcome, read from a CSV or from the trial's bag, and the decision
+rule (adlpipe.evaluation.decision) after every trial, with the policy to run next.
+
+A CSV has a header naming at least `policy` and `success` (1/0, true/false, yes/no), and optionally `trial` (the
+order; otherwise the row order), `force_n` (the peak contact force on the person, N) and `progress` (0..1, kept for
+the record). A trial bag is a recording like any other, plus its outcome on /adl/outcome: a std_msgs/String holding
+JSON ({"policy": "fm_cnn", "success": true, "force_n": 4.2}) or a std_msgs/Bool (success) with the policy's name on
+/adl/policy (std_msgs/String). Bags are taken in the order their trials ended (the outcome's log time).
+
+Trials are paired in time: each policy's k-th trial is compared with every other policy's k-th, so run them
+alternating (the suggested next policy does that: the candidate with the fewest trials).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..bags.reader import BagSource
+from ..errors import AdlError
+from .decision import Rule, decide
+
+OUTCOME, POLICY = "/adl/outcome", "/adl/policy"
+TRUE, FALSE = {"1", "true", "yes", "y", "success"}, {"0", "false", "no", "n", "failure", "fail"}
+
+
+@dataclass(frozen=True)
+class Trial:
+    policy: str
+    success: bool
+    force_n: float | None
+    progress: float | None
+    source: str  # where it was read: file:line or the bag
+
+
+def _flag(text: str, where: str) -> bool:
+    t = str(text).strip().lower()
+    if t in TRUE or t in FALSE:
+        return t in TRUE
+    raise AdlError(f"{where}: success {text!r} is not one of 1/0, true/false, yes/no")
+
+
+def _number(text: object, field: str, where: str, lo: float, hi: float) -> float | None:
+    if text is None or str(text).strip() == "":
+        return None
+    try:
+        x = float(text)
+    except (TypeError, ValueError):
+        raise AdlError(f"{where}: {field} {text!r} is not a number") from None
+    if not lo <= x <= hi:
+        raise AdlError(f"{where}: {field} {x} is outside [{lo}, {hi}]")
+    return x
+
+
+def read_csv(path: Path) -> list[Trial]:
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            header, rows = list(reader.fieldnames or []), list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise AdlError(f"{path}: cannot read it as a CSV of trials ({exc})") from None
+    missing = [c for c in ("policy", "success") if c not in header]
+    if missing:
+        raise AdlError(f"{path}: no column {', '.join(missing)} (a trials CSV needs policy and success; "
+                       f"it has {', '.join(header) or 'none'})")
+    trials = []
+    for i, row in enumerate(rows, start=2):
+        where = f"{path}:{i}"
+        if not (row.get("policy") or "").strip():
+            raise AdlError(f"{where}: empty policy")
+        order = _number(row.get("trial"), "trial", where, 0, 1e12) if "trial" in row else None
+        trials.append((order if order is not None else i, Trial(
+            row["policy"].strip(), _flag(row["success"], where), _number(row.get("force_n"), "force_n", where, 0, 1e6),
+            _number(row.get("progress"), "progress", where, 0, 1), where)))
+    return [t for _, t in sorted(trials, key=lambda x: x[0])]
+
+
+def read_bag(path: Path) -> tuple[int, Trial]:
+    """(the log time of its outcome in ns: when the trial ended, its trial)."""
+    src = BagSource(path)
+    topics = src.topics()
+    if OUTCOME not in topics:
+        raise AdlError(f"{path}: no {OUTCOME} topic: a trial bag carries its outcome there "
+                       "(std_msgs/String JSON or std_msgs/Bool)")
+    outcome, policy, ended = None, None, 0
+    for topic, t, decode in src.messages([OUTCOME] + ([POLICY] if POLICY in topics else [])):
+        data = decode().data
+        if topic == POLICY:
+            policy = str(data).strip()
+        else:
+            outcome, ended = data, t
+    where = f"{path} {OUTCOME}"
+    if outcome is None:
+        raise AdlError(f"{where}: no message")
+    force = progress = None
+    if isinstance(outcome, bool):
+        success = outcome
+    else:
+        try:
+            doc = json.loads(outcome)
+        except json.JSONDecodeError:
+            doc = {"success": outcome}
+        if not isinstance(doc, dict) or "success" not in doc:
+            raise AdlError(f"{where}: {outcome!r} holds no success (a JSON object with 'success', or true/false)")
+        success = _flag(doc["success"], where)
+        policy = str(doc.get("policy", policy) or "").strip() or policy
+        force = _number(doc.get("force_n"), "force_n", where, 0, 1e6)
+        progress = _number(doc.get("progress"), "progress", where, 0, 1)
+    if not policy:
+        raise AdlError(f"{path}: names no policy (put \"policy\" in the {OUTCOME} JSON, or a std_msgs/String on "
+                       f"{POLICY})")
+    return ended, Trial(policy, success, force, progress, str(path))
+
+
+def read_trials(paths: list[Path]) -> list[Trial]:
+    """Every trial of the CSVs (in their order) and of the bags (by recording time), CSVs first."""
+    trials: list[Trial] = []
+    bags = []
+    for p in paths:
+        if p.suffix.lower() == ".csv":
+            trials += read_csv(p)
+        else:
+            bags.append(read_bag(p))
+    return trials + [t for _, t in sorted(bags, key=lambda x: x[0])]
+
+
+def decide_trials(trials: list[Trial], latency_ms: dict[str, float | None], rule: Rule,
+                  policies: list[str] | None = None) -> tuple[dict, str | None]:
+    """The rule on the trials so far (each policy's k-th trial paired with the others' k-th), and the policy to
+    run next (None once decided): the candidate with the fewest trials, in the order policies first appeared."""
+    names = list(dict.fromkeys([*(policies or []), *(t.policy for t in trials)]))
+    success: dict[str, dict[str, bool]] = {p: {} for p in names}
+    force: dict[str, dict[str, float]] = {p: {} for p in names}
+    for t in trials:
+        key = f"trial/{len(success[t.policy])}"
+        success[t.policy][key] = t.success
+        if t.force_n is not None:
+            force[t.policy][key] = t.force_n
+    decision = decide(success, force, {p: latency_ms.get(p) for p in names}, rule, unit="trials")
+    if decision["status"] == "decided" and len(names) > 1:
+        return decision, None
+    left = decision.get("candidates") or names
+    return decision, None if not left else min(left, key=lambda p: (len(success[p]), names.index(p)))

@@ -1,0 +1,117 @@
+"""Trials on a real robot: CSVs and trial bags written by the real writers, decided after every trial."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from adlpipe.bags import messages as M
+from adlpipe.record import write_episode_bag
+from tests.conftest import one_line_error, run_module
+
+
+def write_csv(path: Path, rates: dict[str, float], rounds: int, seed: int = 0) -> Path:
+    rng = np.random.default_rng(seed)
+    rows = ["policy,trial,success,force_n"]
+    for r in range(rounds):
+        for i, (policy, rate) in enumerate(rates.items()):
+            rows.append(f"{policy},{r * len(rates) + i + 1},{int(rng.random() < rate)},{rng.random() * 10:.1f}")
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_trials_stop_as_soon_as_the_rule_decides(tmp_path: Path) -> None:
+    csv = write_csv(tmp_path / "trials.csv", {"fm_cnn": 0.85, "dp_cnn": 0.35}, rounds=100)
+    out = tmp_path / "decision.json"
+    proc = run_module("trials", csv, "--policies", "fm_cnn", "dp_cnn", "--latency", "fm_cnn=3.5", "dp_cnn=31",
+                      "-o", out, check=True)
+    lines = proc.stdout.splitlines()
+    assert lines[0].startswith("trial 1 (fm_cnn: ") and lines[0].endswith("continue: run dp_cnn next")
+    stop = next(i for i, line in enumerate(lines) if ": stop: fm_cnn" in line)
+    assert 10 < stop < 120  # long before the 200 trials in the file
+    assert "not needed for it" in lines[stop + 1]
+    decision = json.loads(out.read_text())
+    assert decision["recommended"] == "fm_cnn" and decision["next"] is None
+
+
+def test_equal_policies_keep_the_trials_going_and_alternate(tmp_path: Path) -> None:
+    csv = write_csv(tmp_path / "trials.csv", {"a": 0.6, "b": 0.6}, rounds=10, seed=1)
+    proc = run_module("trials", csv, "--policies", "a", "b", check=True)
+    nexts = [line.rsplit("run ", 1)[1].split()[0] for line in proc.stdout.splitlines() if "continue: run" in line]
+    assert len(nexts) == 20 and nexts[:4] == ["b", "a", "b", "a"]
+    assert "**Undecided** after 10 trials" in proc.stdout
+
+
+def test_a_policy_that_hurts_the_person_is_out(tmp_path: Path) -> None:
+    rows = ["policy,success,force_n"] + [f"{p},1,{f}" for _ in range(60) for p, f in (("rough", 35.0), ("gentle", 4.0))]
+    (tmp_path / "t.csv").write_text("\n".join(rows) + "\n")
+    proc = run_module("trials", tmp_path / "t.csv", check=True)
+    assert "trial 22 (gentle: success, 4.0 N): stop: gentle" in proc.stdout  # 11 unsafe in 11: enough
+    assert "rough: 11 of 11 (100.0 %), **out**: resolved above gentle" in proc.stdout
+
+
+@pytest.mark.parametrize(("content", "expect"), [
+    ("policy,ok\na,1\n", "no column success"),
+    ("policy,success\na,maybe\n", "t.csv:2: success 'maybe' is not one of"),
+    ("policy,success,force_n\na,1,-3\n", "t.csv:2: force_n -3.0 is outside"),
+])
+def test_a_bad_trials_csv_is_one_line_naming_the_place(tmp_path: Path, content: str, expect: str) -> None:
+    (tmp_path / "t.csv").write_text(content)
+    assert expect in one_line_error(run_module("trials", tmp_path / "t.csv"))
+
+
+def test_the_output_is_never_an_input(tmp_path: Path) -> None:
+    csv = write_csv(tmp_path / "trials.csv", {"a": 0.5, "b": 0.5}, rounds=2)
+    before = csv.read_text()
+    assert "is one of the inputs" in one_line_error(run_module("trials", csv, "-o", csv))
+    assert csv.read_text() == before
+
+
+@pytest.fixture(scope="module")
+def trial_bags(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Trial bags: one recorded demonstration written as five trials by the recorder's own writer, each with its
+    outcome: JSON on /adl/outcome (ROS2 MCAP), or a Bool with the policy on /adl/policy (ROS1 .bag)."""
+    from adlpipe.sim.episode import record_demo
+
+    out = tmp_path_factory.mktemp("trials")
+    st = record_demo("wipe the nose", np.random.default_rng(0), 32, 32, camera_hz=2.0)
+    bags = []
+    for i, (policy, ok) in enumerate([("fm_cnn", True), ("dp_cnn", False), ("fm_cnn", True), ("dp_cnn", True)]):
+        doc = json.dumps({"policy": policy, "success": ok, "force_n": 3.0 + i})
+        bags.append(write_episode_bag(st, out / f"trial_{i}.mcap", "mcap", "raw", "32FC1", i,
+                                      outcome=[("/adl/outcome", M.STRING, doc)]))
+    bags.append(write_episode_bag(st, out / "trial_4.bag", "bag", "raw", "32FC1", 4,
+                                  outcome=[("/adl/policy", M.STRING, "fm_cnn"), ("/adl/outcome", M.BOOL, False)]))
+    return bags
+
+
+def test_trial_bags_are_read_in_recording_order(trial_bags: list[Path]) -> None:
+    proc = run_module("trials", *reversed(trial_bags), "--policies", "fm_cnn", "dp_cnn", check=True)
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("trial ")]
+    assert [line.split(":")[0] for line in lines] == ["trial 1 (fm_cnn", "trial 2 (dp_cnn", "trial 3 (fm_cnn",
+                                                       "trial 4 (dp_cnn", "trial 5 (fm_cnn"]
+    assert "trial 2 (dp_cnn: failure, 4.0 N): continue: run fm_cnn next" in proc.stdout
+    assert "trial 5 (fm_cnn: failure): continue: run dp_cnn next" in proc.stdout  # the Bool, its policy beside
+
+
+def test_a_trial_bag_is_a_recording_ingest_keeps_whole(trial_bags: list[Path], tmp_path: Path) -> None:
+    run_module("ingest", trial_bags[1], "-o", tmp_path / "trials.h5", "--size", "32", check=True)
+    with h5py.File(tmp_path / "trials.h5") as f:
+        (name,) = list(f["episodes"])
+        frames = len(f["episodes"][name]["frames/t"])
+    from adlpipe.bags.reader import BagSource
+
+    images = sum(1 for _ in BagSource(trial_bags[1]).messages(["/camera/color/image_raw"]))
+    assert frames == images >= 5  # every camera frame of the trial, not only the first
+
+
+def test_a_bag_without_an_outcome_is_named(tmp_path: Path, trial_bags: list[Path]) -> None:
+    from adlpipe.sim.episode import record_demo
+
+    st = record_demo("wipe the nose", np.random.default_rng(1), 32, 32, camera_hz=1.0)
+    plain = write_episode_bag(st, tmp_path / "plain.mcap", "mcap", "raw", "32FC1", 0)
+    assert "plain.mcap: no /adl/outcome topic" in one_line_error(run_module("trials", trial_bags[0], plain))
