@@ -157,6 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--details", type=Path, default=Path("metrics/assess_details.json"))
     p.add_argument("--table", type=Path, default=Path("reports/assess.md"))
     p.add_force()
+    p.io(inputs=["models", "data", "split", "robot_mjcf", "replay"], outputs=["details", "table"],
+         implied=lambda a: [a.data.with_name("split.json")] if a.split is None else [])
     args = p.parse_args(argv)
     check_outputs(args.details, args.table)
     refuse_pipeline_outputs([args.details, args.table], args.force)

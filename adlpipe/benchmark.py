@@ -78,6 +78,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--details", type=Path, help="default: metrics/<env>_details.json")
     p.add_argument("--table", type=Path, help="default: reports/<env>.md")
     p.add_argument("--curve-plot", type=Path, help="with --curve; default: reports/<env>_curves.png")
+    p.io(inputs=["models", "compare"], outputs=["metrics", "details", "table", "curve_plot"])
     args = p.parse_args(argv)
     if args.compare:
         return args

@@ -85,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", type=Path, action="append",
                    help="with --verify: the topic map to read the bags with (default: the one each episode was "
                    "ingested with)")
+    p.io(inputs=["data", "verify", "config"], outputs=["json", "png"],
+         implied=lambda a: [a.data.with_name("split.json")])  # the split beside it is part of the dataset
     args = p.parse_args(argv)
     outputs = [o for o in (args.json, args.png) if o]
     check_outputs(*outputs)

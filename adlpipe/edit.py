@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rename", nargs="+", metavar="OLD=NEW")
     p.add_argument("--retask", nargs="+", metavar="NAME=TASK", help="give an episode another task (and the name "
                    "that goes with it)")
+    p.io(inputs=["data", "drop_list", "drop_flagged", "merge"], outputs=["output"], writes_datasets=True)
     args = p.parse_args(argv)
     drop = set(args.drop)
     if args.drop_list:

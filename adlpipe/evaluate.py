@@ -63,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="processes rebuilding the two-mode scenes in the simulator (mode commitment)")
     add_device_args(p, compile_option=True)
     p.add_force()
+    p.io(inputs=["models", "data", "split"], outputs=["metrics", "details", "plots", "table"],
+         implied=lambda a: [a.data.with_name("split.json")] if a.split is None else [])
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)

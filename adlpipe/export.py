@@ -77,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
                         "out (for readers that take no image features, such as kalanos 0.8.2)")
     p.add_argument("--skip-bad", action="store_true",
                    help="leave out episodes whose files cannot be read (each named) instead of stopping")
+    p.io(inputs=["data", "split"], outputs=["out"])
     args = p.parse_args(argv)
     names = args.episodes
     if args.split_part:

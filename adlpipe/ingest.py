@@ -158,6 +158,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--gather", action="store_true",
                    help="link every finished share (--shard) into the index; give no bags")
     p.add_force()
+    p.io(inputs=["bags", "config", "segments"], outputs=["output"], writes_datasets=True)
     args = p.parse_args(argv)
     if not (args.list or args.suggest_config) and args.output is None:
         p.error("the following arguments are required: -o/--output")

@@ -114,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --bag: the topic map (default: the one the episode was ingested with)")
     p.add_argument("-o", "--output", type=Path, default=Path("preds.rrd"))
     add_device_args(p, compile_option=True)
+    p.io(inputs=["model", "data", "split", "replay", "bag", "config"], outputs=["output"])
     args = p.parse_args(argv)
     if args.dataset == (args.model is not None):
         p.error("give either --model (predictions) or --dataset (the dataset's frames)")

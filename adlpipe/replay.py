@@ -143,6 +143,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--table", type=Path, default=Path("reports/table2.md"))
     add_device_args(p, compile_option=True)
     p.add_force()
+    p.io(inputs=["models", "data", "split"], outputs=["metrics", "details", "table", "failures"],
+         implied=lambda a: ([a.data.with_name("split.json")] if a.split is None else [])
+         + ([a.eval] if a.until_decided else []))
     args = p.parse_args(argv)
     if args.moving_person and not args.scenes:
         raise AdlError("--moving-person: the person's motion is drawn with fresh scenes; add --scenes N")

@@ -89,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="the decision's family-wise error rate per step (default 0.05)")
     p.add_argument("-o", "--output", type=Path, default=Path("reports/report.md"))
     p.add_force()
+    p.io(inputs=["eval", "replay", "closed_loop", "moving_replay", "moving_closed_loop", "train_logs", "table1",
+                 "table2", "table2_closed_loop", "failures"], outputs=["output", "summary"])
     args = p.parse_args(argv)
     check_outputs(args.output)
     refuse_pipeline_outputs([args.output, args.output.parent / "figures", args.summary], args.force)

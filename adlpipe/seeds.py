@@ -84,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-o", "--output", type=Path, default=Path("reports/seeds.md"))
     p.add_argument("--metrics", type=Path, default=Path("metrics/seeds.json"))
     p.add_force()
+    p.io(inputs=["eval", "replay"], outputs=["output", "metrics"])
     args = p.parse_args(argv)
     if len(args.eval) != len(args.replay):
         raise AdlError(f"--eval names {len(args.eval)} seeds, --replay {len(args.replay)}: give one of each per seed")

@@ -33,6 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-bad", action="store_true",
                    help="leave out episodes whose files cannot be read (each named) instead of stopping")
     p.add_force()
+    p.io(inputs=["data"], outputs=["output"])
     args = p.parse_args(argv)
     if not 0 < args.test_fraction < 1:
         raise AdlError("--test-fraction must be between 0 and 1")

@@ -127,6 +127,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    "with their state stream as the state input: Push-T, joint-space policies)")
     add_device_args(p)
     p.add_force()
+    p.io(inputs=["data", "split"], outputs=["out", "log"],
+         implied=lambda a: [a.data.with_name("split.json")] if a.split is None else [])
     return p.parse_args(argv)
 
 

@@ -50,11 +50,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--alpha", type=float_range(0.001, 0.5), default=0.05,
                    help="family-wise error rate per step of the rule (default 0.05)")
     p.add_argument("-o", "--output", type=Path, help="the decision as JSON (optional)")
+    p.io(inputs=["inputs", "eval"], outputs=["output"])
     args = p.parse_args(argv)
     if args.output is not None:
         check_outputs(args.output)
-        if any(args.output.resolve() == i.resolve() for i in args.inputs):
-            raise AdlError(f"--output {args.output}: is one of the inputs; it would be overwritten")
     trials = read_trials(args.inputs)
     if not trials:
         raise AdlError(f"{', '.join(map(str, args.inputs))}: no trials")

@@ -127,6 +127,11 @@ def test_repro_runs_every_stage(pipeline: Path) -> None:
     assert "exact McNemar p = " in report and "| verdict in success |" in report
     assert "10 fresh scenes (1 per task, drawn by the recorder's generator with seed 0" in report
     assert "### Scenes solved per task" in report and "| pass the water * |" in report
+    # the decision: the stated rule on the replayed scenes, which replay ran until decided or its cap (1 per task)
+    decision = report.split("## The decision: which policy to put on the robot")[1].split("\n## ")[0]
+    assert "Rule: safety first (force on the person > 20 N), then success with a 5-point" in decision
+    assert "**Recommended: " in decision or "**Undecided** after 10 scenes" in decision
+    assert "Replay ran until decided: it stopped after 10 scenes" in decision
     assert "FM better than BC (U-Net for both" in report and "FM-1 much faster than DP-16" in report
     assert "px: pixels of the 32 px stored image" in report and "a rescaling to the paper's image size" in report
     for fig in ("loss_fm_vs_dp", "val_px_vs_epoch", "px_vs_steps", "ms_vs_steps"):
@@ -142,6 +147,7 @@ def test_the_demonstrations_replay_successfully(pipeline: Path) -> None:
         "overall"]
     assert {"fm_cnn/euler-1", "fm_cnn/euler-16", "dp_cnn/ddpm-16", "bc_cnn"} <= set(rp["success"])
     assert rp["scenes"] == {"kind": "fresh", "per_task": 1, "seed": 0, "moving_person": False}
+    assert rp["sequential"]["cap_per_task"] == 1 and rp["sequential"]["looks"][0]["scenes"] == 10
     split = json.loads((pipeline / "data" / "split.json").read_text())
     assert not set(rp["per_episode"]["demo"]) & set(split["test"] + split["train"])
     assert sorted(rp["per_episode"]["demo"])[0] == "fresh/brush_the_teeth/1000000"
@@ -170,7 +176,9 @@ def test_dvc_commands_print_clean_in_120_columns(pipeline: Path) -> None:
     assert max(len(line) for line in lines) <= 120, proc.stdout
     rows = {line.split()[0] for line in lines[1:]}
     assert {f"metrics/summary/{m}.json" for m in ("fm_cnn", "dp_cnn", "bc_cnn", "blind", "demo")} <= rows, proc.stdout
-    assert lines[0].split() == ["Path", "cm", "converged", "ms", "px", "success"]
+    assert lines[0].split() == ["Path", "cm", "converged", "decision", "ms", "px", "success"]
+    decided = {line.split()[3] for line in lines[1:] if "/fm_cnn.json" in line or "/bc_cnn.json" in line}
+    assert len(decided) and decided <= {"deploy", "candidate", "undecided", "out-safety", "out-success"}, proc.stdout
     status = dvc(pipeline, "status")
     assert status.stdout.strip() == "Data and pipelines are up to date." and not status.stderr.strip()
     plots = dvc(pipeline, "plots", "show", "--json")

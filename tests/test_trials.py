@@ -67,7 +67,7 @@ def test_a_bad_trials_csv_is_one_line_naming_the_place(tmp_path: Path, content: 
 def test_the_output_is_never_an_input(tmp_path: Path) -> None:
     csv = write_csv(tmp_path / "trials.csv", {"a": 0.5, "b": 0.5}, rounds=2)
     before = csv.read_text()
-    assert "is one of the inputs" in one_line_error(run_module("trials", csv, "-o", csv))
+    assert "is an input of this command" in one_line_error(run_module("trials", csv, "-o", csv))
     assert csv.read_text() == before
 
 

@@ -121,14 +121,22 @@ def grasp_tasks() -> set[str]:
     return {t.name for t in TASKS.values() if t.tool is None or t.touches}
 
 
+def decision_verdicts(decision: dict) -> dict[str, str]:
+    """policy -> one word for `dvc metrics show`: deploy, candidate (not out, not chosen), out-safety, out-success,
+    or undecided (a candidate while nothing is decided)."""
+    out = {p: "out-safety" for p in decision.get("out_safety", {})}
+    out.update({p: "out-success" for p in decision.get("out_success", {})})
+    for p in decision.get("candidates", []):
+        chosen = decision["recommended"]
+        out[p] = "deploy" if p == chosen else ("candidate" if chosen else "undecided")
+    return out
+
+
 def summary_files(ev: dict, rp: dict, cl: dict, decision: dict | None = None) -> dict[str, str]:
     """policy -> the JSON `dvc metrics show` prints as one row: px, cm, ms, success (open loop; closed loop: the best
-    Ta's), converged; and the decision's row (adlpipe.evaluation.decision), when there is one."""
+    Ta's), converged; and where the decision (adlpipe.evaluation.decision) leaves it, when there is one."""
     out: dict[str, dict] = {}
-    if decision is not None:
-        out["decision"] = {"recommended": decision["recommended"] or "undecided", "status": decision["status"],
-                           "scenes": decision["n"], "more_scenes_needed": decision["needs"],
-                           "margin": decision["rule"]["margin"], "alpha": decision["rule"]["alpha"]}
+    verdicts = decision_verdicts(decision) if decision is not None else {}
     success = rp.get("success", {})
     if "demo" in success:
         out["demo"] = {"success": round(success["demo"]["overall"], 4)}
@@ -139,7 +147,8 @@ def summary_files(ev: dict, rp: dict, cl: dict, decision: dict | None = None) ->
         ok = success.get(replay_label(model, r))
         out[model] = {"px": round(r["px"], 3), "cm": round(r["cm"], 3), "ms": round(r["ms"], 2),
                       "success": None if ok is None else round(ok["overall"], 4),
-                      "converged": ev.get("training", {}).get(model, {}).get("converged")}
+                      "converged": ev.get("training", {}).get(model, {}).get("converged"),
+                      **({"decision": verdicts[replay_label(model, r)]} if replay_label(model, r) in verdicts else {})}
     for label, r in cl.get("success", {}).items():
         model = label.split("/")[0]
         name = f"closed_loop_{model}"
