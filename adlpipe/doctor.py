@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import Parser
+from .cli import Parser, float_range
 from .dataset import doctor
 from .errors import AdlError, run_cli
 
@@ -76,9 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", nargs="+", help="episode names (default: all)")
     p.add_argument("--json", type=Path, help="write every episode's figures and flags here")
     p.add_argument("--png", type=Path, help="write an overview figure here")
-    p.add_argument("--idle-s", type=float, default=doctor.Limits.idle_s,
+    p.add_argument("--idle-s", type=float_range(0, lo_open=True), default=doctor.Limits.idle_s,
                    help="flag idle time at the start or end longer than this (s)")
-    p.add_argument("--max-speed", type=float, default=doctor.Limits.max_speed_mps,
+    p.add_argument("--max-speed", type=float_range(0, lo_open=True), default=doctor.Limits.max_speed_mps,
                    help="an end effector faster than this (m/s) is a tf glitch")
     p.add_argument("--verify", nargs="+", type=Path, metavar="BAGS",
                    help="compare the dataset with its bags (files, folders, split recordings)")

@@ -69,6 +69,8 @@ def main(argv: list[str] | None = None) -> int:
                    "that goes with it)")
     p.io(inputs=["data", "drop_list", "drop_flagged", "merge"], outputs=["output"], writes_datasets=True)
     args = p.parse_args(argv)
+    if args.flags and not args.drop_flagged:
+        raise AdlError("--flags: chooses which doctor flags --drop-flagged drops; give --drop-flagged DOCTOR_JSON")
     drop = set(args.drop)
     if args.drop_list:
         drop |= names_in(args.drop_list)

@@ -56,7 +56,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, float_range, int_range
+from .cli import POSITIVE, SEED, Parser, float_range, int_range
 from .dataset import schema
 from .dataset.splits import load_split
 from .dvc_outputs import refuse_pipeline_outputs
@@ -83,6 +83,8 @@ from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import label_of, predict_episodes, predict_scenes, steps_for
 from .runtime import Placement, add_device_args
 
+MAX_SCENES = 1000  # per task: 10,000 scenes' first frames, about 2 GB, fit a laptop; 1e9 were killed at 22 GB
+
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = Parser("python -m adlpipe.replay", __doc__)
@@ -96,9 +98,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="best: the epoch with the lowest validation px (default); last: the final epoch")
     p.add_argument("--max-episodes", type=POSITIVE,
                    help="replay at most this many test episodes, taken round-robin over the tasks")
-    p.add_argument("--scenes", type=NON_NEGATIVE, default=0,
+    p.add_argument("--scenes", type=int_range(0, MAX_SCENES), default=0,
                    help="replay this many fresh scenes per task of the test split instead of the recorded test "
-                   "episodes, open or closed loop (0, default: the recorded test split)")
+                   f"episodes, open or closed loop (0, default: the recorded test split; at most {MAX_SCENES}, "
+                   "whose first frames are held in memory, about 0.2 MB each)")
     p.add_argument("--scene-seed", type=SEED, default=0,
                    help="the recording seed the fresh scenes are drawn with (record --seed; default 0)")
     p.add_argument("--scene-camera-size", type=int_range(16, 2048),

@@ -17,7 +17,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import REPO, copy_dataset, one_line_error
+from conftest import REPO, copy_dataset, one_line_error, run_module
 
 from adlpipe.errors import run_cli
 from adlpipe.policy.models import ModelConfig
@@ -193,10 +193,27 @@ def test_a_bad_checkpoint_is_one_line(capsys: pytest.CaptureFixture, world: dict
     ("benchmark", ["--models", "m", "--seed", str(2**70)], "out of range"),
     ("benchmark", ["--models", "m", "--episodes", "1000000000"], "out of range"),
     ("benchmark", ["--models", "m", "--seed", str(2**32 - 5), "--episodes", "10"], "past the largest seed"),
+    ("replay", ["--models", "m", "--scenes", "1000000000"], "out of range"),  # killed at 22 GB before
+    ("doctor", ["x.h5", "--idle-s", "-1"], "out of range"),
+    ("doctor", ["x.h5", "--idle-s", "nan"], "not a finite number"),
+    ("doctor", ["x.h5", "--max-speed", "0"], "out of range"),
+    ("doctor", ["x.h5", "--max-speed", "nan"], "not a finite number"),
+    ("edit", ["x.h5", "-o", "y.h5", "--flags", "frozen camera"], "give --drop-flagged"),
+    ("replay", ["--models", "m", "--until-decided"], "add --scenes N"),
+    ("trials", ["t.csv", "--margin", "0.9"], "out of range"),
 ])
 def test_bad_numbers_are_refused_at_the_parser(capsys: pytest.CaptureFixture, stage: str, args: list[str],
                                                needle: str) -> None:
     assert needle in one_line_error(run_stage(capsys, stage, *args))
+
+
+def test_doctor_verify_reads_a_folder_of_bags_and_refuses_a_device(world: dict, mcap_bags: list[Path]) -> None:
+    """--verify with the folder record writes (its own --help's form) verifies; /dev/zero, which hashing never
+    finishes, is one line at once (it hung before)."""
+    proc = run_module("doctor", world["data"], "--verify", mcap_bags[0].parent, timeout=300)
+    assert proc.returncode in (0, 1) and "episode(s) verified against their bags" in proc.stdout, proc.stderr
+    assert "not a regular file" in one_line_error(run_module("doctor", world["data"], "--verify", "/dev/zero",
+                                                             timeout=60))
 
 
 def test_an_output_path_that_is_a_folder_keeps_every_old_output(capsys: pytest.CaptureFixture, world: dict,

@@ -33,7 +33,25 @@ ATTRS = ("camera_frame", "base_frame", "stamp0_ns", "duration_s", "distortion_mo
 
 def bags_by_sha(bags: list[Path]) -> dict[str, Path]:
     """The given bags (files, folders of them, split recordings) by their sha256, as ingest keys them."""
-    return {sha256_of(b): b for b in recordings(bags)}
+    return {sha256_of(b): b for b in recordings(bag_files(bags))}
+
+
+def bag_files(paths: list[Path]) -> list[Path]:
+    """Files and rosbag2 folders as given; a folder of recordings (data/bags/, as record writes them) becomes its
+    .mcap and .bag files and rosbag2 folders. A device or a pipe (/dev/zero) is refused: hashing it never ends."""
+    out: list[Path] = []
+    for p in paths:
+        if p.is_dir() and not (p / "metadata.yaml").exists():
+            found = sorted([*p.glob("*.mcap"), *p.glob("*.bag"),
+                            *(d for d in p.iterdir() if (d / "metadata.yaml").exists())])
+            if not found:
+                raise AdlError(f"{p}: folder holds no bags (.mcap or .bag files, or rosbag2 folders)")
+            out += found
+        elif p.exists() and not p.is_dir() and not p.is_file():
+            raise AdlError(f"{p}: not a regular file (a device or a pipe); give bag files or folders of them")
+        else:
+            out.append(p)
+    return out
 
 
 def verify_episode(g: h5py.Group, bag: Path, config: list[Path] | None, n_waypoints: int, size: int) -> list[str]:
