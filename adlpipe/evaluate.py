@@ -86,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
                                                 split_path, args.data))
     if journal.done:
         print(f"resuming: {len(journal.done)} model(s) evaluated before ({journal.path})")
-    results, training = evaluate_models(args, journal, split["test"], image_px, modes, placement)
+    with journal:
+        results, training = evaluate_models(args, journal, split["test"], image_px, modes, placement)
     try:
         blind = blind_rows(args.data, split, image_px, args.best_of)
         results[BLIND] = {"best": blind, "last": blind}

@@ -15,6 +15,7 @@ import os
 from pathlib import Path
 
 from .dataset.from_bag import sha256_of
+from .errors import AdlError
 
 # arguments that change where or how fast a stage runs, never its figures
 NOT_FIGURES = ("force", "workers", "threads", "metrics", "details", "plots", "table", "failures")
@@ -70,6 +71,15 @@ class Journal:
     def close(self) -> None:
         """The stage wrote its outputs: nothing to resume."""
         self.path.unlink(missing_ok=True)
+
+    def __enter__(self) -> Journal:
+        return self
+
+    def __exit__(self, kind: type | None, exc: BaseException | None, tb: object) -> None:
+        """A clean failure (a user error: bad input, to be fixed and run again with other inputs) leaves no journal
+        behind; a kill or a Ctrl-C keeps it, for the run that resumes."""
+        if isinstance(exc, AdlError):
+            self.close()
 
 
 class Section:

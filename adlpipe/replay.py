@@ -333,8 +333,9 @@ def main(argv: list[str] | None = None) -> int:
     sequential = None
     if args.until_decided:
         tasks = test_tasks(args.data, names)
-        scenes, trajs, (wins, per_episode, diagnostics), sequential = replay_until_decided(
-            args, split, tasks, names, checkpoint, placement, journal)
+        with journal:
+            scenes, trajs, (wins, per_episode, diagnostics), sequential = replay_until_decided(
+                args, split, tasks, names, checkpoint, placement, journal)
         where = f"{len(scenes) // len(tasks)} fresh scenes per task (seed {args.scene_seed}), until decided"
     else:
         if args.scenes:
@@ -351,7 +352,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             worker = replay_one
             jobs, trajs = open_loop_jobs(args, split, scenes, None if args.scenes else names, checkpoint, placement)
-        wins, per_episode, diagnostics = run_jobs(worker, jobs, args.workers, placement, journal)
+        with journal:
+            wins, per_episode, diagnostics = run_jobs(worker, jobs, args.workers, placement, journal)
     result = success_summary(wins)
     strips = {} if args.closed_loop else failure_strips(args.failures, scenes, trajs, diagnostics, per_episode,
                                                         args.strip)

@@ -207,6 +207,22 @@ def test_bad_numbers_are_refused_at_the_parser(capsys: pytest.CaptureFixture, st
     assert needle in one_line_error(run_stage(capsys, stage, *args))
 
 
+def test_evaluate_failing_cleanly_leaves_no_journal(capsys: pytest.CaptureFixture, world: dict,
+                                                    tmp_path: Path) -> None:
+    """A model whose checkpoints are not checkpoints fails evaluate in one line, and its resume journal goes with
+    it (it was left beside the metrics before)."""
+    bad = tmp_path / "bad_model"
+    bad.mkdir()
+    for name in ("best.pt", "last.pt"):
+        (bad / name).write_bytes(b"not a checkpoint")
+    details = tmp_path / "d.json"
+    line = one_line_error(run_stage(capsys, "evaluate", "--models", world["model"], bad, "--data", world["data"],
+                                    "--split", world["split"], "--metrics", tmp_path / "e.json", "--details", details,
+                                    "--plots", tmp_path / "p.csv", "--table", tmp_path / "t.md", "--steps", "1"))
+    assert "bad_model" in line
+    assert not list(tmp_path.glob(".*journal")) and not details.exists()
+
+
 def test_doctor_verify_reads_a_folder_of_bags_and_refuses_a_device(world: dict, mcap_bags: list[Path]) -> None:
     """--verify with the folder record writes (its own --help's form) verifies; /dev/zero, which hashing never
     finishes, is one line at once (it hung before)."""
