@@ -223,6 +223,26 @@ def test_evaluate_failing_cleanly_leaves_no_journal(capsys: pytest.CaptureFixtur
     assert not list(tmp_path.glob(".*journal")) and not details.exists()
 
 
+def test_a_state_message_left_out_for_nan_is_not_stored_as_nan(tmp_path: Path) -> None:
+    """A state topic whose message at the first frame held NaN (and was left out) leaves that frame without a
+    state: the ingest says so in one line, naming the frame and why, instead of storing NaN (it did before)."""
+    from adlpipe.bags.topics import TopicMap
+    from adlpipe.record import write_episode_bag
+    from adlpipe.sim.episode import record_demo
+
+    st = record_demo("wipe the nose", np.random.default_rng(0), 32, 32, camera_hz=2.0)
+    st.state_names = ["x", "y"]
+    st.states = [(t, np.array([np.nan, 0.0]) if i == 0 else np.array([0.1 * i, 0.0]))
+                 for i, (t, _, _) in enumerate(st.camera)]  # one state per frame, the first NaN
+    bag = write_episode_bag(st, tmp_path / "nan_state.mcap", "mcap", "raw", "32FC1", 0,
+                            TopicMap(state="/adl/state"))
+    config = tmp_path / "topics.yaml"
+    config.write_text("state: /adl/state\n")
+    line = one_line_error(run_module("ingest", bag, "-o", tmp_path / "x.h5", "--size", "32", "--config", config))
+    assert "frame 0 (0.00 s) has no state message" in line and "non-finite" in line
+    assert not (tmp_path / "x.h5").exists()
+
+
 def test_doctor_verify_reads_a_folder_of_bags_and_refuses_a_device(world: dict, mcap_bags: list[Path]) -> None:
     """--verify with the folder record writes (its own --help's form) verifies; /dev/zero, which hashing never
     finishes, is one line at once (it hung before)."""

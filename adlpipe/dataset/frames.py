@@ -167,8 +167,14 @@ class FrameWriter:
         self.g.create_dataset("gripper", data=grip.astype(np.float32))
         for key, s in (series or {}).items():
             rows = np.asarray(s.rows, float).reshape(len(s.t), len(s.names))
-            d = self.g.create_dataset(key, data=_nearest_rows(t, np.asarray(s.t) - t0, rows, tolerance)
-                                      .astype(np.float32))
+            synced = _nearest_rows(t, np.asarray(s.t) - t0, rows, tolerance)
+            missing = np.flatnonzero(~np.isfinite(synced).all(1)) if synced.shape[1] else []
+            if len(missing):  # a policy trained on it would read NaN: the frame has no value, say which and why
+                i = int(missing[0])
+                why = (" (the message there was left out: it held non-finite values)" if s.non_finite else "")
+                raise AdlError(f"{where}: frame {i} ({t[i]:.2f} s) has no {key} message within {tolerance} s"
+                               f"{why}; {len(missing)} frame(s) so")
+            d = self.g.create_dataset(key, data=synced.astype(np.float32))
             d.attrs["names"] = list(s.names)
             self.g.create_dataset(f"{key}_stream_t", data=np.asarray(s.t, float) - t0)
             self.g.create_dataset(f"{key}_stream", data=rows.astype(np.float32))
