@@ -84,6 +84,13 @@ def _on_sigint(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def _quiet_interrupts(unraisable: object) -> None:
+    """A Ctrl-C that lands in a finaliser cannot propagate: Python prints it as a 5-8 line "Exception ignored"
+    trace before the stage's one line. The flag above already holds it; anything else is printed as before."""
+    if not isinstance(getattr(unraisable, "exc_value", None), KeyboardInterrupt):
+        sys.__unraisablehook__(unraisable)
+
+
 def check_interrupted() -> None:
     """Raise KeyboardInterrupt if a Ctrl-C came, even one that was swallowed where it landed."""
     if _INTERRUPTED.is_set():
@@ -113,6 +120,7 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
     previous = signal.getsignal(signal.SIGINT) if main_thread else None
     if previous is not None and previous is not signal.SIG_IGN:
         signal.signal(signal.SIGINT, _on_sigint)
+        sys.unraisablehook = _quiet_interrupts
     try:
         return main(argv)
     except AdlError as exc:

@@ -20,7 +20,7 @@ from .cli import Parser
 from .dataset import schema
 from .dataset.lerobot import Export, plan
 from .dataset.splits import load_split
-from .errors import AdlError, run_cli
+from .errors import AdlError, check_interrupted, note_committed, run_cli
 from .lock import exclusive
 
 
@@ -55,7 +55,9 @@ def _export_locked(data: Path, out: Path, names: list[str] | None, progress: boo
                                        disable=None if progress else True)):
                 export.add(f[schema.EPISODES][n], i)
             info = export.finish()
+        check_interrupted()  # a Ctrl-C that landed in a finaliser (PyAV's, h5py's) was swallowed: commit nothing
         tmp.rename(out)
+        note_committed(out)
         return info
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
