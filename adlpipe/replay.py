@@ -65,6 +65,7 @@ from .evaluation.decision import Rule, decide_replay
 from .evaluation.jobs import run_jobs, success_summary
 from .evaluation.outcomes import failure_sections, failure_strips, success_table
 from .evaluation.replay import (
+    ENSEMBLED,
     camera_rate,
     closed_loop_one,
     closed_loop_scenes,
@@ -136,6 +137,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--closed-loop", type=POSITIVE, metavar="TA", nargs="+",
                    help="closed loop, for models trained with train --closed-loop: execute TA of the predicted "
                    "waypoints, then re-plan from new camera frames; several TA values are a sweep (e.g. 4 8 16)")
+    p.add_argument("--temporal-ensemble", type=float_range(0, 10), metavar="M",
+                   help="closed loop with --closed-loop 1: re-plan at every waypoint and execute the weighted mean "
+                   "of every plan's waypoint for that step, weights exp(-M i) from the oldest plan on (ACT's temporal "
+                   "ensembling; ACT uses M = 0.01); rows labelled Ta-1-ensemble")
     p.add_argument("--oracle", nargs="+", choices=["command", "ee"],
                    help="closed loop: also run each test demonstration's own future waypoints as plans, in the first "
                    "model's format (its horizon, rate and statistics) anchored as a policy of that target is: "
@@ -152,6 +157,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.moving_person and not args.scenes:
         raise AdlError("--moving-person: the person's motion is drawn with fresh scenes; add --scenes N")
+    if args.temporal_ensemble is not None and args.closed_loop != [1]:
+        raise AdlError("--temporal-ensemble: re-plans at every waypoint; use it with --closed-loop 1")
     if args.until_decided and (not args.scenes or args.closed_loop):
         raise AdlError("--until-decided: replays fresh scenes open loop; add --scenes N (the cap per task) and drop "
                        "--closed-loop")
@@ -257,14 +264,15 @@ def closed_loop_jobs(args: argparse.Namespace, scenes: list[ReplayScene], checkp
                            "camera, so closed-loop replay cannot feed it")
         if i == 0 and args.oracle:  # in the first model's format
             jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, scenes, args.oracle, args.closed_loop, placement,
-                                args.time_limit)
+                                args.time_limit, args.temporal_ensemble)
         for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
             for ta in args.closed_loop:
                 if ta > policy.cfg.horizon:
                     raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
-                label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}"
-                jobs += [(label, str(d), checkpoint, sc, steps, ta, args.seed, placement, None, args.time_limit)
-                         for sc in scenes]
+                label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}" + (
+                    ENSEMBLED if args.temporal_ensemble is not None else "")
+                jobs += [(label, str(d), checkpoint, sc, steps, ta, args.seed, placement, None, args.time_limit,
+                          args.temporal_ensemble) for sc in scenes]
     return jobs
 
 

@@ -110,3 +110,22 @@ def test_closed_loop_replays_fresh_scenes_with_the_oracle_at_every_ta(ingested: 
     run_module("replay", *common, "--metrics", tmp_path / "mo.json", "--details", tmp_path / "do.json",
                "--table", tmp_path / "to.md", check=True)
     assert set(json.loads((tmp_path / "do.json").read_text())["tasks"]) == names  # open loop: the same scenes
+
+
+def test_temporal_ensembling_runs_the_oracle_and_the_policy_at_every_waypoint(ingested: Path, closed_loop_model,
+                                                                              tmp_path: Path) -> None:
+    """ACT's temporal ensembling in the executor: a plan at every waypoint, the executed waypoint the weighted mean
+    of every plan's waypoint for that step. The oracle's plans all agree, so their mean is the demonstration: it
+    solves every scene as at Ta 4; the policy runs one plan per waypoint (its per-re-plan diagnostics count them)."""
+    split, model = closed_loop_model
+    run_module("replay", "--models", model, "--closed-loop", "1", "--temporal-ensemble", "0.01", "--oracle",
+               "command", "--fm-steps", "1", "--data", ingested, "--split", split, "--workers", "2",
+               "--metrics", tmp_path / "m.json", "--details", tmp_path / "d.json", "--table", tmp_path / "t.md",
+               check=True)
+    details = json.loads((tmp_path / "d.json").read_text())
+    assert details["success"]["oracle-command/Ta-1-ensemble"]["overall"] >= 0.9, details["success"]
+    diag = details["diagnostics"]["fm/euler-1/Ta-1-ensemble"]
+    assert all(d["replans"] >= 20 for d in diag.values()), diag  # about 10 per second of each demonstration
+    bad = run_module("replay", "--models", model, "--closed-loop", "4", "--temporal-ensemble", "0.01",
+                     "--data", ingested, "--split", split)
+    assert "use it with --closed-loop 1" in bad.stderr

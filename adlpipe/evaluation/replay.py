@@ -42,7 +42,7 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     takes from here on."""
     from ..sim.episode import replay_closed_loop, spec_from_objects
 
-    label, model_dir, checkpoint, sc, steps, execute, seed, placement, oracle, time_limit = job
+    label, model_dir, checkpoint, sc, steps, execute, seed, placement, oracle, time_limit, ensemble = job
     torch.set_num_threads(1)
     policy, ck = load_policy(Path(model_dir) / checkpoint, placement)
     cfg = policy.cfg
@@ -69,7 +69,8 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
 
     spec = spec_from_objects(sc.task, sc.object_names, sc.objects, sc.person)
     run = replay_closed_loop(spec, plan, time_limit * sc.duration_s, cfg.rate_hz, execute, cfg.n_obs, sc.rgb.shape[0],
-                             sc.camera_hz, anchor="measured" if (oracle or cfg.target) == "ee" else "command")
+                             sc.camera_hz, anchor="measured" if (oracle or cfg.target) == "ee" else "command",
+                             ensemble=ensemble)
     demo_t, demo_p = sc.series("command") if sc.command is not None else sc.series("ee")
     demo_len = path_length(sc.ee_pos)
     demo_at_rate = np.stack([np.interp(np.arange(0, sc.duration_s, 1 / cfg.rate_hz), sc.ee_t, sc.ee_pos[:, d])
@@ -87,6 +88,7 @@ def median_or_none(values: np.ndarray) -> float | None:
     return round(float(np.median(values)), 3) if len(values) else None
 
 
+ENSEMBLED = "-ensemble"  # label suffix of a closed loop with temporal ensembling (replay --temporal-ensemble)
 OFF_PATH_M = 0.02  # a re-plan whose anchor lies further than this from the demonstrated path is off it
 
 
@@ -141,7 +143,8 @@ def longest_still(waypoints: np.ndarray, rate_hz: float) -> float:
 
 
 def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, scenes: list, formats: list[str],
-                execute: list[int], placement: Placement, time_limit: float = 1.0) -> list[tuple]:
+                execute: list[int], placement: Placement, time_limit: float = 1.0,
+                ensemble: float | None = None) -> list[tuple]:
     """Closed-loop jobs whose plans are each scene's demonstration's own future waypoints, in `model_dir`'s target
     format (horizon, rate, statistics) with the anchor of each format: "command" relative to the last command,
     "ee" relative to the measured tcp (the executor's ceiling for policies trained on each)."""
@@ -154,8 +157,8 @@ def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, scenes: list, fo
         for ta in execute:
             if ta > horizon:
                 raise AdlError(f"--closed-loop {ta}: {model_dir} predicts only {horizon} waypoints")
-            jobs += [(f"oracle-{fmt}/Ta-{ta}", str(model_dir), checkpoint, sc, 1, ta, 0, placement, fmt,
-                      time_limit) for sc in scenes]
+            jobs += [(f"oracle-{fmt}/Ta-{ta}{ENSEMBLED if ensemble is not None else ''}", str(model_dir), checkpoint,
+                      sc, 1, ta, 0, placement, fmt, time_limit, ensemble) for sc in scenes]
     return jobs
 
 

@@ -354,7 +354,7 @@ class ClosedLoopRun:
 
 def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.ndarray],
                        duration: float, rate_hz: float, execute: int, n_obs: int, image_size: int,
-                       camera_hz: float, anchor: str = "command") -> ClosedLoopRun:
+                       camera_hz: float, anchor: str = "command", ensemble: float | None = None) -> ClosedLoopRun:
     """The seed's closed loop: from the last `n_obs` camera frames (rgb, depth, tcp position and gripper joint when
     rendered) the policy predicts the next waypoints at rate_hz, relative to an anchor (plan(frames, elapsed) ->
     (Tp, 3) offsets in the base frame); the arm executes the first `execute` of them, and the policy re-plans from
@@ -363,7 +363,13 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.
 
     anchor "command": the offsets start from the last commanded waypoint (where the previous plan left the arm's
     command, the home pose at first), the policies trained on the command stream; "measured": from the measured tcp
-    of the newest frame, which trails the command by ~80 ms (policies trained with --target ee)."""
+    of the newest frame, which trails the command by ~80 ms (policies trained with --target ee).
+
+    ensemble (ACT's temporal ensembling, Zhao et al. 2023, with its weight m): re-plan at every waypoint (execute
+    1) and execute the weighted mean of every plan's waypoint for that step, in the base frame, weights exp(-m i)
+    from the oldest plan (i = 0) on."""
+    if ensemble is not None and execute != 1:
+        raise ValueError("temporal ensembling re-plans at every waypoint: execute must be 1")
     task = TASKS[spec.task]
     ctrl, scene = make_scene(spec, image_size, image_size)
     camera = RgbdCamera(ctrl.m, image_size, image_size)
@@ -385,12 +391,21 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.
     ctrl.d.ctrl[len(ARM_JOINTS):] = 0.04
     plans, elapsed, dt = 0, 0.0, 1.0 / rate_hz
     last = ctrl.tcp_pos
+    pending: dict[int, list[np.ndarray]] = {}  # ensembling: step -> every plan's waypoint for it, oldest first
     try:
         on_step(0.0)
         while elapsed < duration - 1e-9:
             stack = [frames[0]] * (n_obs - len(frames)) + list(frames)  # padded at the start, as in training
             base = last if anchor == "command" else stack[-1][2]
-            waypoints = base + np.asarray(plan(stack, elapsed), float)[:execute]
+            planned = base + np.asarray(plan(stack, elapsed), float)
+            if ensemble is None:
+                waypoints = planned[:execute]
+            else:
+                for k, p in enumerate(planned):
+                    pending.setdefault(plans + k, []).append(p)
+                votes = np.array(pending.pop(plans))
+                w = np.exp(-ensemble * np.arange(len(votes)))
+                waypoints = (w[:, None] * votes).sum(0, keepdims=True) / w.sum()
             commands += list(waypoints)
             plans += 1
             seg = np.vstack([last, waypoints])
