@@ -27,11 +27,11 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 from doctor_peers import Findings, peer_findings  # noqa: E402
-from plant_defects import DEFECTS, plant  # noqa: E402
+from plant_defects import COPIES, DEFECTS, DEFECTS_E2, plant  # noqa: E402
 
 EPISODES_PER_TASK = 3
-COPY = "near-duplicate episode"
-TASK_OF_COPY = "brush_the_teeth"  # its third bag is its first saved again
+COPY_TASKS = ("brush_the_teeth", "comb_the_hair", "feed_the_human")  # a copy's third bag is its first, edited
+SETS = {"first": (DEFECTS, 7), "e2": (DEFECTS_E2, 11), "clean": ({}, 13)}  # set -> (its defects, recording seed)
 
 
 def adlpipe(*args: str) -> subprocess.CompletedProcess:
@@ -42,26 +42,33 @@ def adlpipe(*args: str) -> subprocess.CompletedProcess:
     return proc
 
 
-def recordings(root: Path) -> tuple[dict[str, str], list[str]]:
-    """Record the clean episodes and plant the defects: (bag name -> defect, clean bag names)."""
+def recordings(root: Path, defects: dict, seed: int) -> tuple[dict[str, str], list[str]]:
+    """Record the clean episodes and plant the defects: (bag name -> defect, clean bag names). A copy (the same
+    demonstration saved again, or run backwards) replaces the third bag of a task with its first, edited; the first
+    is then one of a planted pair, not a clean episode."""
     clean = root / "clean"
     adlpipe("adlpipe.record", "--out", str(clean), "--episodes", str(EPISODES_PER_TASK), "--size", "64",
-            "--camera-hz", "10", "--format", "mcap", "--seed", "7", "--workers", "2")
+            "--camera-hz", "10", "--format", "mcap", "--seed", str(seed), "--workers", "2")
     bags = sorted(clean.glob("*.mcap"))
     planted = root / "bags"
     planted.mkdir()
-    others = [b for b in bags if not b.name.startswith(TASK_OF_COPY)]
-    victims = others[:: len(others) // (len(DEFECTS) - 1)][: len(DEFECTS) - 1]  # one per task, spread
-    defects = {}
-    for bag, defect in zip(victims, [d for d in DEFECTS if d != COPY], strict=True):
+    copies = [d for d in defects if d in COPIES]
+    copy_tasks = COPY_TASKS[:len(copies)]
+    others = [b for b in bags if not b.name.startswith(copy_tasks)]
+    singles = [d for d in defects if d not in COPIES]
+    victims = others[:: max(1, len(others) // max(1, len(singles)))][: len(singles)]  # spread over the tasks
+    planted_at = {}
+    for bag, defect in zip(victims, singles, strict=True):
         plant(bag, planted / bag.name, defect)
-        defects[bag.name] = defect
-    plant(clean / f"{TASK_OF_COPY}_0000.mcap", planted / f"{TASK_OF_COPY}_0002.mcap", COPY)  # saved twice
-    defects[f"{TASK_OF_COPY}_0002.mcap"] = COPY
+        planted_at[bag.name] = defect
+    for task, defect in zip(copy_tasks, copies, strict=True):
+        plant(clean / f"{task}_0000.mcap", planted / f"{task}_0002.mcap", defect)
+        planted_at[f"{task}_0002.mcap"] = defect
     for bag in bags:
-        if bag.name not in defects:
+        if bag.name not in planted_at:
             shutil.copy(bag, planted / bag.name)
-    return defects, [b.name for b in bags if b.name not in defects]
+    originals = {f"{task}_0000.mcap" for task in copy_tasks}
+    return planted_at, [b.name for b in bags if b.name not in planted_at and b.name not in originals]
 
 
 def doctor_flags(root: Path) -> dict[str, list[str]]:
@@ -69,13 +76,17 @@ def doctor_flags(root: Path) -> dict[str, list[str]]:
     import h5py
 
     data = root / "adl.h5"
-    adlpipe("adlpipe.ingest", *map(str, sorted((root / "bags").glob("*.mcap"))), "-o", str(data), "--size", "64")
+    ingest = adlpipe("adlpipe.ingest", *map(str, sorted((root / "bags").glob("*.mcap"))), "-o", str(data), "--size",
+                     "64", "--skip-bad")
+    refused = {Path(line.split(": ")[2]).name: line for line in ingest.stderr.splitlines() if "skipped bad bag" in line}
+    for line in refused.values():
+        print(f"  {line}")
     adlpipe("adlpipe.doctor", str(data), "--json", str(root / "doctor.json"))
     figs = json.loads((root / "doctor.json").read_text())["episodes"]
     with h5py.File(data) as f:
         bag_of = {n: Path(str(f["episodes"][n].attrs["source_path"])).name for n in f["episodes"]}
     (root / "bag_of_episode.json").write_text(json.dumps(bag_of))
-    return {bag_of[n]: fig["flags"] for n, fig in figs.items()}
+    return {bag_of[n]: fig["flags"] for n, fig in figs.items()} | {bag: ["refused at ingest"] for bag in refused}
 
 
 def score(findings: Findings, defects: dict[str, str], clean: list[str]) -> tuple[dict[str, bool], int]:
@@ -86,16 +97,16 @@ def score(findings: Findings, defects: dict[str, str], clean: list[str]) -> tupl
     return found, sum(bool(findings.get(b)) for b in clean)
 
 
-def table(rows: dict[str, tuple[dict, int] | str], n_clean: int) -> str:
-    head = "| tool | " + " | ".join(DEFECTS) + f" | found | clean episodes flagged (of {n_clean}) |"
-    lines = [head, "| --- |" + " :---: |" * len(DEFECTS) + " ---: | ---: |"]
+def table(rows: dict[str, tuple[dict, int] | str], n_clean: int, defects: dict) -> str:
+    head = "| tool | " + " | ".join(defects) + f" | found | clean episodes flagged (of {n_clean}) |"
+    lines = [head, "| --- |" + " :---: |" * len(defects) + " ---: | ---: |"]
     for tool, row in rows.items():
         if isinstance(row, str):
-            lines.append(f"| {tool} | {row} |" + " |" * (len(DEFECTS) + 1))
+            lines.append(f"| {tool} | {row} |" + " |" * (len(defects) + 1))
             continue
         found, false = row
-        cells = " | ".join("yes" if found.get(d) else "-" for d in DEFECTS)
-        lines.append(f"| {tool} | {cells} | {sum(found.values())} of {len(DEFECTS)} | {false} |")
+        cells = " | ".join("yes" if found.get(d) else "-" for d in defects)
+        lines.append(f"| {tool} | {cells} | {sum(found.values())} of {len(defects)} | {false} |")
     return "\n".join(lines)
 
 
@@ -103,12 +114,15 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, help="keep the bags and the dataset here (default: a temporary folder)")
     p.add_argument("--peers", type=Path, default=REPO / "bench" / "peers", help="folder of the peers' venvs")
+    p.add_argument("--set", choices=sorted(SETS), default="first",
+                   help="first: the 8 defects of issue E.3; e2: the 13 of issue E2 (clock, calibration, units, "
+                   "labels, copies), recorded with another seed; clean: 30 clean episodes (false flags only)")
     a = p.parse_args()
     root = a.out or Path(tempfile.mkdtemp(prefix="adlpipe-doctor-peers-"))
     root.mkdir(parents=True, exist_ok=True)
-    defects, clean = recordings(root)
+    kinds, seed = SETS[a.set]
+    defects, clean = recordings(root, kinds, seed)
     flags = doctor_flags(root)
-    clean = [b for b in clean if b != f"{TASK_OF_COPY}_0000.mcap"]  # the copy's original: one of the planted pair
     tools: dict[str, Findings | str] = {"adlpipe doctor": {b: {f.split(":")[0] for f in fl} for b, fl in flags.items()}}
     tools.update(peer_findings(a.peers, root))
     rows: dict[str, tuple[dict, int] | str] = {}
@@ -122,7 +136,7 @@ def main() -> None:
         for bag in clean:
             if findings.get(bag):
                 print(f"  clean {bag}: {', '.join(sorted(findings[bag]))}")
-    print(table(rows, len(clean)))
+    print(table(rows, len(clean), kinds))
 
 
 if __name__ == "__main__":

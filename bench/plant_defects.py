@@ -18,8 +18,14 @@ from adlpipe.bags.messages import MessageFactory
 from adlpipe.bags.writer import BagWriter
 
 IMAGE = "/camera/color/image_raw"  # the recorder's topics
+INFO = "/camera/color/camera_info"
+DEPTH = "/camera/depth/image_raw"
 TF = "/tf"
+TF_STATIC = "/tf_static"
 JOINTS = "/joint_states"
+TASK = "/adl/task"
+CAMERA_FRAME = "camera_color_optical_frame"
+GRIPPER = "finger_left"
 SPIKE_RAD = 1.0  # a joint sample this far off (an encoder glitch)
 GLITCH_M = 0.3  # a tf sample this far off (a bad transform)
 WINDOW_S = 1.0  # frozen and dropped camera stretches
@@ -181,5 +187,160 @@ DEFECTS: dict[str, tuple[Edit, str]] = {  # defect -> (edit, the doctor's flag t
 }
 
 
+# The second set (issue E2): what a lab gets wrong once and loses weeks to; each edit is what the faulty driver,
+# calibration or script would have written.
+CLOCK_S = 0.2  # the camera's clock this far behind the robot's
+BUMP_M, BUMP_DEG = 0.05, 5.0  # the camera moved after calibration: its recorded pose is this far off
+DARK = 0.25  # an exposure this share of the usual
+NOISE_M = 2e-4  # a recording saved twice, its tf with sensor noise of this size
+
+
+def _of(messages: list[Message], topics: tuple[str, ...] = (IMAGE,)) -> Iterator[object]:
+    return (m[3] for m in messages if m[0] in topics)
+
+
+def camera_clock_behind(messages: list[Message]) -> list[Message]:
+    """The camera's stamps CLOCK_S behind the robot's (an unsynchronised camera PC): images, depth and camera_info;
+    the camera started CLOCK_S after the robot's streams (its first frames stamped before them are not there)."""
+    for msg in _of(messages, (IMAGE, DEPTH, INFO)):
+        _shift(msg, -int(CLOCK_S * 1e9))
+    first_tf = min(stamp_ns(m[3]) for m in messages if m[0] == TF)
+    return [m for m in messages if m[0] not in (IMAGE, DEPTH, INFO) or stamp_ns(m[3]) >= first_tf]
+
+
+def wrong_intrinsics(messages: list[Message]) -> list[Message]:
+    """camera_info's K of the 640x480 calibration on the smaller stream (width and height say the stream's)."""
+    for msg in _of(messages, (INFO,)):
+        k = np.array(msg.k, float).reshape(3, 3)
+        scale = 640.0 / msg.width
+        msg.k = np.array([k[0, 0] * scale, 0, 319.5, 0, k[1, 1] * scale, 239.5, 0, 0, 1], float)
+    return messages
+
+
+def stale_extrinsics(messages: list[Message]) -> list[Message]:
+    """The camera was bumped after calibration: the static transform says where it was (BUMP_M, BUMP_DEG off)."""
+    half = np.radians(BUMP_DEG) / 2
+    for msg in _of(messages, (TF_STATIC,)):
+        for tr in msg.transforms:
+            if tr.child_frame_id == CAMERA_FRAME:
+                tr.transform.translation.x += BUMP_M
+                q = tr.transform.rotation  # rotated about the world z by BUMP_DEG: q' = (cos, 0, 0, sin) * q
+                c, sz = np.cos(half), np.sin(half)
+                q.w, q.x, q.y, q.z = (c * q.w - sz * q.z, c * q.x - sz * q.y, c * q.y + sz * q.x, c * q.z + sz * q.w)
+    return messages
+
+
+def _pixels(msg: object) -> np.ndarray:
+    return np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.width, -1)
+
+
+def bgr_as_rgb(messages: list[Message]) -> list[Message]:
+    """A driver publishing BGR bytes under the rgb8 encoding."""
+    for msg in _of(messages):
+        msg.data = np.ascontiguousarray(_pixels(msg)[..., ::-1]).ravel()
+    return messages
+
+
+def dark_images(messages: list[Message]) -> list[Message]:
+    """An exposure left at DARK of the usual."""
+    for msg in _of(messages):
+        msg.data = (_pixels(msg) * DARK).astype(np.uint8).ravel()
+    return messages
+
+
+def depth_in_millimetres(messages: list[Message]) -> list[Message]:
+    """A 32FC1 depth topic carrying millimetres (REP 118 says metres)."""
+    for msg in _of(messages, (DEPTH,)):
+        d = np.frombuffer(bytes(msg.data), np.float32) * 1000.0
+        msg.data = np.frombuffer(d.astype(np.float32).tobytes(), np.uint8)
+    return messages
+
+
+def joints_in_degrees(messages: list[Message]) -> list[Message]:
+    for msg in _of(messages, (JOINTS,)):
+        msg.position = np.degrees(np.asarray(msg.position, float))
+    return messages
+
+
+def wrong_task_label(messages: list[Message]) -> list[Message]:
+    """The task string of another task (a script that kept the previous session's label)."""
+    for msg in _of(messages, (TASK,)):
+        msg.data = "wipe the nose" if msg.data != "wipe the nose" else "put on the hat"
+    return messages
+
+
+def cut_off(messages: list[Message]) -> list[Message]:
+    """The recording stopped at 55 % of the demonstration, mid-motion (what is sent once is kept)."""
+    stamps = _image_stamps(messages)
+    end = stamps[0] + int(0.55 * (stamps[-1] - stamps[0]))
+    once = {TASK, TF_STATIC, "/adl/affordance"}
+    return [m for m in messages if m[0] in once or m[2] <= end]
+
+
+def half_rate_camera(messages: list[Message]) -> list[Message]:
+    """A camera at half its rate: every other image (with its depth and camera_info) is missing."""
+    stamps = _image_stamps(messages)
+    drop = set(stamps[1::2].tolist())
+    return [m for m in messages if not (m[0] in (IMAGE, DEPTH, INFO) and stamp_ns(m[3]) in drop)]
+
+
+def stuck_gripper(messages: list[Message]) -> list[Message]:
+    """The gripper's reading stuck at its first value, with the sensor's noise on it."""
+    rng = np.random.default_rng(1)
+    first = None
+    for msg in _of(messages, (JOINTS,)):
+        names = list(msg.name)
+        if GRIPPER in names:
+            pos = np.asarray(msg.position, float).copy()
+            k = names.index(GRIPPER)
+            first = pos[k] if first is None else first
+            pos[k] = first + rng.normal(0, 1e-4)
+            msg.position = pos
+    return messages
+
+
+def time_reversed(messages: list[Message]) -> list[Message]:
+    """A copy of the demonstration run backwards (a script that reversed a playback), saved an hour later."""
+    times = [m[2] for m in messages]
+    t0, t1 = min(times), max(times)
+    dt = int(COPY_SHIFT_S * 1e9)
+    once = {TASK, TF_STATIC, "/adl/affordance"}
+    out = []
+    for topic, msgtype, t, msg in messages:
+        new = t if topic in once else t0 + (t1 - t)
+        _shift(msg, new - t + dt)
+        out.append((topic, msgtype, new + dt, msg))
+    return out
+
+
+def saved_again_with_noise(messages: list[Message]) -> list[Message]:
+    """The same demonstration saved twice, its tf with NOISE_M of sensor noise (not byte-identical)."""
+    rng = np.random.default_rng(2)
+    for msg in _of(messages, (TF,)):
+        for tr in msg.transforms:
+            tr.transform.translation.x += rng.normal(0, NOISE_M)
+            tr.transform.translation.y += rng.normal(0, NOISE_M)
+    return saved_again(messages)
+
+
+DEFECTS_E2: dict[str, tuple[Edit, str]] = {  # the second set: defect -> (edit, the doctor's flag that names it)
+    "camera clock 200 ms behind": (camera_clock_behind, "camera clock"),
+    "K of another resolution": (wrong_intrinsics, "camera intrinsics"),
+    "stale extrinsics": (stale_extrinsics, "extrinsics"),
+    "BGR as RGB": (bgr_as_rgb, "colour order"),
+    "dark images": (dark_images, "dark images"),
+    "depth in mm (32FC1)": (depth_in_millimetres, "depth units"),
+    "joints in degrees": (joints_in_degrees, "joint units"),
+    "wrong task label": (wrong_task_label, "task label"),
+    "cut off mid-motion": (cut_off, "cut off"),
+    "camera at half rate": (half_rate_camera, "camera rate"),
+    "stuck gripper with noise": (stuck_gripper, "stuck gripper"),
+    "time-reversed copy": (time_reversed, "time-reversed"),
+    "near-duplicate 0.2 mm": (saved_again_with_noise, "near duplicate"),
+}
+COPIES = ("near-duplicate episode", "time-reversed copy", "near-duplicate 0.2 mm")  # planted from another bag
+
+
 def plant(src: Path, dst: Path, defect: str) -> None:
-    write(dst, DEFECTS[defect][0](list(read(src))))
+    edit = (DEFECTS | DEFECTS_E2)[defect][0]
+    write(dst, edit(list(read(src))))

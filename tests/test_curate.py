@@ -81,7 +81,7 @@ def test_doctor_flags_each_problem_and_not_the_clean_episode(curated: dict) -> N
     assert stuck["joint_flat_joint"] == "joint_3" and stuck["joint_flat_s"] == pytest.approx(1.5, abs=0.011)
     assert stuck["joint_flat_moved_m"] > 0.05 and clean["joint_flat_s"] == 0.0
     assert rep[name["copy"]]["flags"] == [f"near duplicate: of {name['clean']} (recorded before it): as many "
-                                          "frames, the end effector 0.0 um from it (RMS; limit 20 um)"]
+                                          "frames, the end effector 0.0 um from it (RMS; limit 1000 um)"]
     assert f"| wipe the table | {len(CASES)} | {len(CASES) - 1} |" in curated["stdout"]
     png = (curated["root"] / "doctor.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"

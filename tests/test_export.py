@@ -73,6 +73,7 @@ def source(ingested: Path) -> list[dict]:
             fr = g["frames"]
             state = np.concatenate([fr["ee_pos"][()], fr["joint_pos"][()], fr["gripper"][()][:, None]], 1)
             out.append({"task": str(g.attrs["task"]), "T": len(fr["t"]), "state": state, "rgb0": fr["rgb"][0],
+                        "t": fr["t"][()],
                         "depth0": fr["depth"][int(fr["depth_index"][0])] if fr["depth_index"][0] >= 0 else None})
     return out
 
@@ -137,6 +138,10 @@ def test_stats_equal_the_source(exported: Path, ingested: Path) -> None:
     np.testing.assert_allclose(np.ravel(rgb["mean"]), pixels.mean(0), rtol=1e-6)
     np.testing.assert_allclose(np.ravel(rgb["std"]), pixels.std(0), rtol=1e-5)
     np.testing.assert_allclose(np.ravel(rgb["max"]), pixels.max(0))
+    stamps = np.concatenate([e["t"] for e in src])  # the camera's own stamps, as exported
+    cam = stats["observation.camera_timestamp"]
+    assert cam["count"] == [len(stamps)] and cam["min"] == [0.0]
+    np.testing.assert_allclose(cam["max"], [stamps.max()], rtol=1e-6)
 
 
 def test_an_export_never_overwrites_and_leaves_nothing_when_it_fails(ingested: Path, tmp_path: Path) -> None:

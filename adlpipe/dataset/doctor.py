@@ -16,6 +16,15 @@ import numpy as np
 from scipy.stats import median_abs_deviation
 
 from . import schema
+from .doctor_checks import (
+    camera_figures,
+    dataset_flags,
+    end_speed,
+    frame_figures,
+    image_figures,
+    joint_units,
+    path_signature,
+)
 from .doctor_signals import action_figures, chatter, joint_figures, near_duplicates, non_finite_notes, signature
 from .frames import nearest_index
 
@@ -44,9 +53,27 @@ class Limits:
     flatline_moved_m: float = 0.05  # ... while the end effector moves this far: a stuck sensor or a stale command
     chatter: int = 4  # this many gripper crossings (open or close) within chatter_s: chatter
     chatter_s: float = 1.0
-    duplicate_m: float = 2e-5  # as many frames as an earlier recording, the end effector within this of it (RMS)
-    duplicate_image: float = 0.01  # and the first frame within this mean grey level (0-1): the same demonstration
-    #                                saved twice (two recordings differ by 0.1 mm or more)
+    duplicate_m: float = 1e-3  # as many frames as an earlier recording, the end effector within this of it (RMS)
+    duplicate_image: float = 1e-4  # and the first frame within this mean grey level (0-1): the same demonstration
+    #                                saved twice (200 clean demonstrations: pairs 0.3 mm apart, but their first
+    #                                frames 3e-4 or more apart)
+    # doctor_checks: cross-modal, per episode
+    principal_share: float = 0.2  # the principal point this share of the image or more from its middle: a K for
+    #                               another resolution (real cameras sit within a few percent of the middle)
+    depth_max_m: float = 20.0  # a median depth beyond this at a manipulation camera: millimetres in a metres topic
+    joint_max: float = 7.0  # a joint value beyond this (rad; 2 pi and a margin): degrees
+    end_speed_mps: float = 0.08  # still moving this fast over the last 0.3 s, where the dataset's episodes end at
+    #                              rest (3x its median end speed): cut off mid-motion (200 clean: at most 0.054)
+    clock_lag_s: float = 0.1  # image motion this far behind (or ahead of) the end effector's speed ...
+    clock_min_r: float = 0.5  # ... with at least this correlation: the camera's clock is off
+    # doctor_checks: against the dataset's medians (3 episodes per task are enough)
+    colour_off: float = 0.05  # mean colour this far (sum over R G B, 0-1) from the dataset's ...
+    swap_gain: float = 0.5  # ... and red and blue swapped this much nearer to it: BGR stored as RGB
+    dark: float = 0.5  # mean brightness below this share of the dataset's median
+    slow_camera: float = 0.6  # a frame rate below this share of the dataset's median
+    label_ratio: float = 0.5  # the path this share nearer another task's episodes than its own: a wrong label
+    reversed_m: float = 0.01  # another episode's path run backwards within this (RMS; and within a fifth of its
+    #                           forward distance): a time-reversed copy
 
 
 def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
@@ -71,6 +98,11 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
     fig.update(action_figures(g, ee_t, ee_pos))
     fig["non_finite"] = non_finite_notes(g)
     fig["depth_holes"] = _depth_holes(fr)
+    fig.update(camera_figures(g))
+    fig.update(image_figures(fr))
+    fig.update(joint_units(g))
+    fig["end_speed_mps"] = end_speed(ee_t, ee_pos, duration)
+    fig.update(frame_figures(g, ee_t, ee_pos))
     fig["bridged_tf_gap"] = "bridged" in str(g.attrs.get("note", ""))
     fig["flags"] = flags(fig, float(fr.attrs.get("sync_tolerance_s", 0.05)), limits)
     return fig
@@ -204,7 +236,27 @@ def flags(fig: dict, tolerance: float, limits: Limits) -> list[str]:
     if fig["depth_holes"] is not None and fig["depth_holes"] > limits.depth_holes:
         out.append(f"depth holes: {fig['depth_holes']:.0%} of depth pixels have no return (limit "
                    f"{limits.depth_holes:.0%})")
-    return out + signal_flags(fig, limits)
+    return out + signal_flags(fig, limits) + unit_flags(fig, limits)
+
+
+def unit_flags(fig: dict, limits: Limits) -> list[str]:
+    """The camera model, the units and the clock (doctor_checks), each against its limit."""
+    out = []
+    pp = fig["principal_point"]
+    if max(abs(pp[0] - 0.5), abs(pp[1] - 0.5)) > limits.principal_share:
+        out.append(f"camera intrinsics: the principal point lies at ({pp[0]:.2f}, {pp[1]:.2f}) of the image "
+                   f"(limit {limits.principal_share:.0%} from its middle): camera_info K of another resolution?")
+    if fig["depth_median_m"] is not None and fig["depth_median_m"] > limits.depth_max_m:
+        out.append(f"depth units: median depth {fig['depth_median_m']:.1f} m (limit {limits.depth_max_m} m): "
+                   "millimetres in a metres (32FC1) topic?")
+    if fig["joint_abs_max"] is not None and fig["joint_abs_max"] > limits.joint_max:
+        out.append(f"joint units: a joint reads {fig['joint_abs_max']:.1f} (limit {limits.joint_max} rad): "
+                   "degrees?")
+    lag, r = fig["clock_lag_s"], fig["clock_r"]
+    if lag is not None and abs(lag) > limits.clock_lag_s and r >= limits.clock_min_r:
+        out.append(f"camera clock: image motion follows the end effector's speed {1000 * lag:+.0f} ms later "
+                   f"(correlation {r:.2f}; limit {1000 * limits.clock_lag_s:.0f} ms)")
+    return out
 
 
 def signal_flags(fig: dict, limits: Limits) -> list[str]:
@@ -272,14 +324,17 @@ def examine(path: str, names: list[str] | None = None, limits: Limits = Limits()
     """Figures and flags of every named episode (all if None) of a dataset, an episode at a time."""
     figs: dict[str, dict] = {}
     signatures: dict[str, np.ndarray] = {}  # a few hundred numbers per episode
+    paths: dict[str, np.ndarray] = {}
     stamps: dict[str, int] = {}
     with schema.open_dataset(path, names) as f:
         for n in names if names is not None else schema.episode_names(f):
             g = f[schema.EPISODES][n]
             figs[n] = episode_figures(g, limits)
             signatures[n], stamps[n] = signature(g), int(g.attrs.get("stamp0_ns", 0))
+            paths[n] = path_signature(g["series/ee_t"][()], g["series/ee_pos"][()], figs[n]["duration_s"])
     outlier_flags(figs, limits)
     duplicate_flags(figs, signatures, stamps, limits)
+    dataset_flags(figs, paths, limits)
     return figs
 
 

@@ -225,9 +225,10 @@ class Export:
         state = np.concatenate([ee, joints, gripper], 1)
         action = np.concatenate([ee[1:], ee[-1:]], 0)
         task = str(g.attrs["task"])
-        stats = {STATE: Moments(), ACTION: Moments()}
+        stats = {STATE: Moments(), ACTION: Moments(), CAMERA_TIMESTAMP: Moments()}
         stats[STATE].add(state)
         stats[ACTION].add(action)
+        stats[CAMERA_TIMESTAMP].add(t.reshape(-1, 1))  # the camera's own stamps: jitter and gaps, in meta/stats
         # one frame decoded at a time; the episode's PNG bytes are what is held
         images = {self.layout.image_key(schema.camera_names(g)[0]): ((fr["rgb"][k] for k in range(T)), 255.0)}
         blank = np.zeros((self.layout.size, self.layout.size), np.float32)

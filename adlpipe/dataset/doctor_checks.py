@@ -1,0 +1,164 @@
+"""The doctor's cross-modal and cross-episode checks: what a lab gets wrong once and loses weeks to (issue E2).
+
+Per episode, from its own arrays: the camera model against the image (a principal point far from the image's
+middle: K written for another resolution), depth and joint values against their units, the end effector still
+and the camera's clock against the end effector's (image motion
+cross-correlated with end-effector speed). Across episodes, against the dataset's own medians (3 episodes per task
+are enough): the end effector still moving at the last frame where the others end at rest (cut off), colour
+channels in the other order (BGR), images much darker, a camera at a fraction of the others'
+rate, a gripper that never moves in a task whose other episodes grasp, a path nearer another task's episodes than
+its own (a wrong label), and a time-reversed copy of another episode. Not caught: a camera moved after
+calibration (stale extrinsics; see README). Each threshold is a field of doctor.Limits.
+"""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+
+CLOCK_MAX_LAG_S = 0.5  # lags searched between image motion and end-effector speed
+SAMPLES = 8  # frames read for colour and brightness
+PATH_POINTS = 32  # the end-effector path resampled for cross-episode comparison
+
+
+def camera_figures(g: h5py.Group) -> dict:
+    """The principal point as a share of the stored image (K written for another resolution lies far out)."""
+    K, size = g["K"][()], float(g["rgb"].shape[1])
+    return {"principal_point": [float(K[0, 2] / size), float(K[1, 2] / size)]}
+
+
+def image_figures(fr: h5py.Group) -> dict:
+    """Mean colour (0-1, R G B as stored) over SAMPLES evenly spaced frames, and the median valid depth (m)."""
+    n = fr["rgb"].shape[0]
+    picks = np.unique(np.linspace(0, n - 1, min(n, SAMPLES)).round().astype(int))
+    rgb = np.mean([fr["rgb"][int(i)].reshape(-1, 3).mean(0) for i in picks], 0) / 255.0
+    out = {"mean_rgb": [float(x) for x in rgb], "depth_median_m": None}
+    if "depth" in fr and len(fr["depth"]):
+        d = fr["depth"][int(len(fr["depth"]) // 2)]
+        valid = d[d > 0]
+        out["depth_median_m"] = float(np.median(valid)) / 1000.0 if len(valid) else None
+    return out
+
+
+def joint_units(g: h5py.Group) -> dict:
+    """The largest |value| of any joint (rad for a revolute joint: beyond 2 pi it is degrees)."""
+    q = g["series/joint_pos"][()]
+    return {"joint_abs_max": float(np.nanmax(np.abs(q))) if q.size else None}
+
+
+def end_speed(ee_t: np.ndarray, ee_pos: np.ndarray, duration: float, window_s: float = 0.3) -> float:
+    """Mean end-effector speed over the last window_s of the episode (m/s): a demonstration ends at rest."""
+    inside = (ee_t >= duration - window_s) & (ee_t <= duration)
+    if inside.sum() < 2:
+        return 0.0
+    t, p = ee_t[inside], ee_pos[inside]
+    return float(np.linalg.norm(p[-1] - p[0]) / max(t[-1] - t[0], 1e-6))
+
+
+def frame_figures(g: h5py.Group, ee_t: np.ndarray, ee_pos: np.ndarray) -> dict:
+    """Image motion (mean absolute grey change between consecutive frames, one frame at a time: memory flat)
+    against end-effector speed: the lag that correlates them best (a camera clock behind the robot's shows motion
+    late) and that correlation."""
+    fr = g["frames"]
+    t = fr["t"][()]
+    out: dict = {"clock_lag_s": None, "clock_r": None}
+    if len(t) < 8 or len(ee_t) < 8:
+        return out
+    prev, motion = None, []
+    for i in range(len(t)):
+        grey = fr["rgb"][i].mean(2, dtype=np.float32)
+        if prev is not None:
+            motion.append(float(np.abs(grey - prev).mean()))
+        prev = grey
+    m = np.asarray(motion)
+    if m.std() < 1e-6:
+        return out
+    mid = (t[1:] + t[:-1]) / 2
+    speed_t = (ee_t[1:] + ee_t[:-1]) / 2
+    speed = np.linalg.norm(np.diff(ee_pos, axis=0), axis=1) / np.maximum(np.diff(ee_t), 1e-6)
+    step = float(np.median(np.diff(t))) / 4
+    for lag in np.arange(-CLOCK_MAX_LAG_S, CLOCK_MAX_LAG_S + 1e-9, step):
+        s = np.interp(mid - lag, speed_t, speed)
+        if s.std() < 1e-9:
+            continue
+        r = float(np.corrcoef(m, s)[0, 1])
+        if out["clock_r"] is None or r > out["clock_r"]:
+            out["clock_lag_s"], out["clock_r"] = float(lag), r
+    return out
+
+
+def path_signature(ee_t: np.ndarray, ee_pos: np.ndarray, duration: float) -> np.ndarray:
+    """The end-effector path resampled at PATH_POINTS instants evenly over the episode (PATH_POINTS, 3)."""
+    grid = np.linspace(0.0, duration, PATH_POINTS)
+    return np.stack([np.interp(grid, ee_t, ee_pos[:, d]) for d in range(3)], 1)
+
+
+def _rms(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(((a - b) ** 2).sum(-1).mean()))
+
+
+def dataset_flags(figs: dict[str, dict], paths: dict[str, np.ndarray], limits) -> None:  # noqa: ANN001 - Limits
+    """The flags that compare an episode with the dataset's others (added to figs[name]["flags"])."""
+    names = list(figs)
+    if len(names) < 3:
+        return
+    rgb = np.array([figs[n]["mean_rgb"] for n in names])
+    med_rgb = np.median(rgb, 0)
+    bright = rgb.mean(1)
+    fps = np.array([figs[n]["fps"] for n in names])
+    end = np.array([figs[n]["end_speed_mps"] for n in names])
+    for k, n in enumerate(names):
+        f = figs[n]
+        as_is, swapped = np.abs(rgb[k] - med_rgb).sum(), np.abs(rgb[k][::-1] - med_rgb).sum()
+        if as_is > limits.colour_off and swapped < limits.swap_gain * as_is:
+            f["flags"].append(f"colour order: red and blue swapped match the dataset's mean colour "
+                              f"{swapped:.3f} against {as_is:.3f} as stored (BGR stored as RGB?)")
+        if bright[k] < limits.dark * np.median(bright):
+            f["flags"].append(f"dark images: mean brightness {bright[k]:.2f} against the dataset's median "
+                              f"{np.median(bright):.2f} (limit {limits.dark:.0%} of it)")
+        if end[k] > limits.end_speed_mps and end[k] > 3 * np.median(end):
+            f["flags"].append(f"cut off: the end effector still moves at {end[k]:.2f} m/s over the last 0.3 s, where "
+                              f"the dataset's episodes end at {np.median(end):.2f} m/s (median; limit "
+                              f"{limits.end_speed_mps} m/s and 3x the median)")
+        if fps[k] < limits.slow_camera * np.median(fps):
+            f["flags"].append(f"camera rate: {fps[k]:.1f} fps against the dataset's median {np.median(fps):.1f} "
+                              f"(limit {limits.slow_camera:.0%} of it)")
+    _gripper_flags(figs, names)
+    _path_flags(figs, names, paths, limits)
+
+
+def _gripper_flags(figs: dict[str, dict], names: list[str]) -> None:
+    by_task: dict[str, list[str]] = {}
+    for n in names:
+        by_task.setdefault(figs[n]["task"], []).append(n)
+    for members in by_task.values():
+        grasping = [n for n in members if (figs[n]["gripper_events"] or 0) > 0]
+        if len(grasping) < 2:
+            continue
+        for n in members:
+            if figs[n]["gripper_events"] == 0:
+                figs[n]["flags"].append(f"stuck gripper: it never opens or closes, while {len(grasping)} of the "
+                                        f"task's {len(members)} episodes do")
+
+
+def _path_flags(figs: dict[str, dict], names: list[str], paths: dict[str, np.ndarray], limits) -> None:  # noqa: ANN001
+    """Wrong task label (the path nearer another task's episodes than its own) and time-reversed copies."""
+    by_task: dict[str, list[str]] = {}
+    for n in names:
+        by_task.setdefault(figs[n]["task"], []).append(n)
+    for n in names:
+        own = figs[n]["task"]
+        mean_to = {task: float(np.mean([_rms(paths[n], paths[m]) for m in members if m != n]))
+                   for task, members in by_task.items() if len([m for m in members if m != n]) >= 2}
+        if own in mean_to and len(mean_to) > 1:
+            other = min((t for t in mean_to if t != own), key=mean_to.get)
+            if mean_to[other] < limits.label_ratio * mean_to[own]:
+                figs[n]["flags"].append(f"task label: its path is {100 * mean_to[other]:.1f} cm (RMS) from the "
+                                        f"episodes of {other!r} and {100 * mean_to[own]:.1f} cm from those of its own "
+                                        f"task {own!r} (limit {limits.label_ratio:.0%})")
+        for m in names:  # much nearer backwards than forwards: not a path that returns the way it came
+            back = _rms(paths[n], paths[m][::-1])
+            if m != n and back < limits.reversed_m and back < 0.2 * _rms(paths[n], paths[m]):
+                figs[n]["flags"].append(f"time-reversed: its path is {m}'s run backwards ({1000 * back:.1f} mm "
+                                        f"RMS, limit {1000 * limits.reversed_m:.0f} mm)")
+                break

@@ -1,0 +1,57 @@
+"""The doctor's cross-modal and cross-episode checks (issue E2) on recorded bags with defects planted by the real
+writer (bench/plant_defects.py): each planted defect carries the flag that names it, the clean episodes none, with
+3 episodes per task."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import h5py
+import pytest
+from conftest import REPO, run_module
+
+sys.path.insert(0, str(REPO / "bench"))
+from plant_defects import plant  # noqa: E402
+
+TASKS = ["pass the water", "cover the food", "wipe the nose", "brush the teeth"]
+PLANTED = {  # bag -> (defect, the flag that must name it)
+    "pass_the_water_0000.mcap": ("BGR as RGB", "colour order"),
+    "pass_the_water_0001.mcap": ("K of another resolution", "camera intrinsics"),
+    "cover_the_food_0000.mcap": ("depth in mm (32FC1)", "depth units"),
+    "cover_the_food_0001.mcap": ("joints in degrees", "joint units"),
+    "wipe_the_nose_0000.mcap": ("camera at half rate", "camera rate"),
+    "wipe_the_nose_0001.mcap": ("camera clock 200 ms behind", "camera clock"),
+    "brush_the_teeth_0000.mcap": ("wrong task label", "task label"),
+    "brush_the_teeth_0001.mcap": ("dark images", "dark images"),
+}
+
+
+@pytest.fixture(scope="module")
+def doctored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
+    root = tmp_path_factory.mktemp("doctor_checks")
+    run_module("record", "--episodes", "3", "--tasks", *TASKS, "--size", "48", "--camera-hz", "10", "--out",
+               root / "clean", "--seed", "3", check=True)
+    (root / "bags").mkdir()
+    for bag in sorted((root / "clean").glob("*.mcap")):
+        if bag.name in PLANTED:
+            plant(bag, root / "bags" / bag.name, PLANTED[bag.name][0])
+        else:
+            shutil.copy(bag, root / "bags" / bag.name)
+    data = root / "x.h5"
+    run_module("ingest", *sorted((root / "bags").glob("*.mcap")), "-o", data, "--size", "48", check=True)
+    run_module("doctor", data, "--json", root / "d.json", check=True)
+    with h5py.File(data) as f:
+        bag_of = {n: Path(str(f["episodes"][n].attrs["source_path"])).name for n in f["episodes"]}
+    figs = json.loads((root / "d.json").read_text())["episodes"]
+    return {bag_of[n]: [flag.split(":")[0] for flag in fig["flags"]] for n, fig in figs.items()}
+
+
+def test_each_planted_defect_is_named_and_no_clean_episode_is_flagged(doctored: dict[str, list[str]]) -> None:
+    assert len(doctored) == 12
+    for bag, (defect, flag) in PLANTED.items():
+        assert flag in doctored[bag], (defect, doctored[bag])
+    clean = {bag: flags for bag, flags in doctored.items() if bag not in PLANTED}
+    assert len(clean) == 4 and not any(clean.values()), clean
