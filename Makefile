@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 export DVC_NO_ANALYTICS = 1
 
-.PHONY: install test demo lint bench clean
+.PHONY: install test demo lint docs bench clean
 
 $(BIN)/.installed: pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
@@ -20,9 +20,13 @@ $(BIN)/.installed: pyproject.toml constraints.txt
 install: $(BIN)/.installed
 
 lint: install
-	$(BIN)/ruff check adlpipe tests bench examples
+	$(BIN)/ruff check adlpipe tests bench examples tools
+	$(BIN)/mypy
 
-test: install lint
+docs: install
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict -q -d site
+
+test: install lint docs
 	$(BIN)/python -m pytest -q
 
 demo: install

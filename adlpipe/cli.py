@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
@@ -39,6 +40,8 @@ class Parser(argparse.ArgumentParser):
             refuse_overwriting_inputs(outs, ins + list(implied(parsed) if implied else []))
             if not writes_datasets:
                 refuse_overwriting_datasets(outs)
+        if os.environ.get("ADLPIPE_PARSE_ONLY"):  # the documentation's test: the command parses, nothing runs
+            raise SystemExit(0)
         return parsed
 
     def add_force(self) -> None:
@@ -56,8 +59,8 @@ def _paths(value: object) -> list[Path]:
     if value is None:
         return []
     if isinstance(value, (list, tuple)):
-        return [Path(v) for v in value if v is not None]
-    return [Path(value)]
+        return [Path(str(v)) for v in value if v is not None]
+    return [Path(str(value))]
 
 
 def refuse_overwriting_inputs(outputs: Iterable[Path], inputs: Iterable[Path]) -> None:

@@ -141,10 +141,15 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
             signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+CONSOLE: list[str] = []  # the stage the `adlpipe` console command runs in this process (adlpipe.console)
+
+
 def _running_as(prog: str) -> bool:
-    """Whether this process was started as `python -m <prog>` (not a test calling the stage in its own process)."""
+    """Whether this process was started as `python -m <prog>` or `adlpipe <stage>` (not a test calling the stage in
+    its own process)."""
     spec = getattr(sys.modules.get("__main__"), "__spec__", None)
-    return spec is not None and spec.name == prog and threading.current_thread() is threading.main_thread()
+    started = (spec is not None and spec.name == prog) or prog in CONSOLE
+    return started and threading.current_thread() is threading.main_thread()
 
 
 def _fail(prog: str, message: str) -> int:

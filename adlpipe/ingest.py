@@ -1,4 +1,4 @@
-"""Ingest ROS bags into one HDF5 dataset (schema: adlpipe.dataset.schema, docs/hdf5_schema.md).
+"""Ingest ROS bags into one HDF5 dataset (schema: adlpipe.dataset.schema, docs/reference/hdf5_schema.md).
 
     python -m adlpipe.ingest data/bags/*.mcap -o data/adl.h5 [--config topics.yaml] [--waypoints 32]
 

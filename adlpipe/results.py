@@ -224,6 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     p = Parser("python -m adlpipe.results", __doc__)
     p.add_argument("--results", type=Path, default=Path("results"), help="the committed results (default results/)")
     p.add_argument("--readme", type=Path, default=Path("README.md"))
+    p.add_argument("--docs", type=Path, default=Path("docs"), help="the documentation's pages (every .md under it); "
+                   "their marked tables are generated too")
     p.add_argument("--check", action="store_true", help="change nothing; exit 1 naming each table that disagrees")
     p.add_argument("--save-from", type=Path, metavar="METRICS",
                    help="first copy a run's details (" + ", ".join(RUN_FILES) + ") into RESULTS/default")
@@ -252,25 +254,28 @@ def main(argv: list[str] | None = None) -> int:
         _load(args.save_seeds)
         with atomic_path(args.results / "seeds" / "seeds.json") as tmp:
             shutil.copyfile(args.save_seeds, tmp)
-    try:
-        readme = args.readme.read_text()
-    except OSError as exc:
-        raise AdlError(f"{args.readme}: cannot read ({exc.strerror})") from None
     generated = tables(args.results)
-    missing = [n for n in generated if _block(n).search(readme) is None]
-    new, changed = apply(readme, generated)
+    pages = [args.readme] + (sorted(args.docs.rglob("*.md")) if args.docs.is_dir() else [])
+    texts = {}
+    for page in pages:
+        try:
+            texts[page] = page.read_text()
+        except OSError as exc:
+            raise AdlError(f"{page}: cannot read ({exc.strerror})") from None
+    missing = [n for n in generated if not any(_block(n).search(t) for t in texts.values())]
+    updates = {page: apply(text, generated) for page, text in texts.items()}
+    differing = [f"{page}: '{n}'" for page, (_, changed) in updates.items() for n in changed]
     if args.check:
-        if changed:
-            names = ", ".join(f"'{n}'" for n in changed)
-            raise AdlError(f"{args.readme}: table{'s' if len(changed) > 1 else ''} {names} "
-                           f"differ{'' if len(changed) > 1 else 's'} from {args.results} (python -m adlpipe.results "
+        if differing:
+            raise AdlError(f"table(s) {', '.join(differing)} differ from {args.results} (python -m adlpipe.results "
                            "rewrites them)")
-        print(f"{args.readme}: every table agrees with {args.results}")
+        print(f"{', '.join(map(str, texts))}: every table agrees with {args.results}")
         return 0
-    if changed:
-        write_text_atomic(args.readme, new)
-    print(f"{args.readme}: {len(changed)} table(s) rewritten ({', '.join(changed) or 'none changed'})"
-          + (f"; not shown in it: {', '.join(missing)}" if missing else ""))
+    for page, (new, changed) in updates.items():
+        if changed:
+            write_text_atomic(page, new)
+            print(f"{page}: {len(changed)} table(s) rewritten ({', '.join(changed)})")
+    print(f"{len(differing)} table(s) rewritten" + (f"; shown on no page: {', '.join(missing)}" if missing else ""))
     return 0
 
 

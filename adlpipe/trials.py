@@ -16,6 +16,7 @@ the others' k-th: run them alternating, as the suggested next policy does. Trial
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from .evaluation.decision import Rule, policies_of
 from .evaluation.trials import decide_trials, read_trials
 
 
-def latencies(args: object) -> dict[str, float | None]:
+def latencies(args: argparse.Namespace) -> dict[str, float | None]:
     out: dict[str, float | None] = dict(policies_of(read_json_object(args.eval, "evaluate details", "models"))
                                         if args.eval else {})
     for item in args.latency or []:
@@ -58,7 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     if not trials:
         raise AdlError(f"{', '.join(map(str, args.inputs))}: no trials")
     latency, rule = latencies(args), Rule(args.margin, args.alpha)
-    decision, nxt = {}, None
+    decision: dict = {}
+    nxt: str | None = None
     for i in range(1, len(trials) + 1):
         decision, nxt = decide_trials(trials[:i], latency, rule, args.policies)
         t = trials[i - 1]

@@ -6,7 +6,7 @@ Frames are real MuJoCo ADL renders (RGB and depth of a recorded demonstration, s
 them one frame per HDF5 chunk, then reads a random frame T times in a fresh file handle (as a DataLoader worker
 would). Options: gzip (built into every HDF5), lzf (built into h5py), PNG bytes per frame (a variable-length
 uint8 dataset), JPEG bytes (lossy; RGB only), blosc-lz4 and blosc-zstd via hdf5plugin (readers need the plugin).
-The choice and its figures are in docs/frame_storage.md.
+The choice and its figures are in docs/reference/frame_storage.md.
 """
 
 from __future__ import annotations

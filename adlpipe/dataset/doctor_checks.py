@@ -32,7 +32,7 @@ def image_figures(fr: h5py.Group) -> dict:
     n = fr["rgb"].shape[0]
     picks = np.unique(np.linspace(0, n - 1, min(n, SAMPLES)).round().astype(int))
     rgb = np.mean([fr["rgb"][int(i)].reshape(-1, 3).mean(0) for i in picks], 0) / 255.0
-    out = {"mean_rgb": [float(x) for x in rgb], "depth_median_m": None}
+    out: dict = {"mean_rgb": [float(x) for x in rgb], "depth_median_m": None}
     if "depth" in fr and len(fr["depth"]):
         d = fr["depth"][int(len(fr["depth"]) // 2)]
         valid = d[d > 0]
@@ -98,7 +98,7 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def dataset_flags(figs: dict[str, dict], paths: dict[str, np.ndarray], limits) -> None:  # noqa: ANN001 - Limits
-    """The flags that compare an episode with the dataset's others (added to figs[name]["flags"])."""
+    """The flags that compare an episode with the dataset's others, added to each episode's list of flags."""
     names = list(figs)
     if len(names) < 3:
         return
@@ -151,7 +151,7 @@ def _path_flags(figs: dict[str, dict], names: list[str], paths: dict[str, np.nda
         mean_to = {task: float(np.mean([_rms(paths[n], paths[m]) for m in members if m != n]))
                    for task, members in by_task.items() if len([m for m in members if m != n]) >= 2}
         if own in mean_to and len(mean_to) > 1:
-            other = min((t for t in mean_to if t != own), key=mean_to.get)
+            other = min((t for t in mean_to if t != own), key=lambda t: mean_to[t])
             if mean_to[other] < limits.label_ratio * mean_to[own]:
                 figs[n]["flags"].append(f"task label: its path is {100 * mean_to[other]:.1f} cm (RMS) from the "
                                         f"episodes of {other!r} and {100 * mean_to[own]:.1f} cm from those of its own "

@@ -1,4 +1,4 @@
-"""Every camera frame of an episode, streamed into its HDF5 group as the bag is read (docs/frame_storage.md).
+"""Every camera frame of an episode, streamed into its HDF5 group as the bag is read (docs/reference/frame_storage.md).
 
     frames/t              (T,)        float64  header stamp, s from the first image
     frames/rgb            (T, S, S, 3) uint8   one chunk per frame, gzip 4 + shuffle
@@ -44,9 +44,9 @@ DEPTH_MM_MAX = 65535
 # ordered by header stamp within this many frames of look-ahead (held resized, so memory stays flat); a frame
 # later than that cannot be ordered and the bag is refused.
 REORDER_FRAMES = 8
-# Compressing a frame took two thirds of ingest's time in the reading thread (docs/frame_storage.md). zlib releases
-# the GIL, so frames are compressed in threads into exactly the chunk HDF5's filters would store, and written with
-# write_direct_chunk in order, while the reading thread decodes and resizes the next ones.
+# Compressing a frame took two thirds of ingest's time in the reading thread (docs/reference/frame_storage.md). zlib
+# releases the GIL, so frames are compressed in threads into exactly the chunk HDF5's filters would store, and
+# written with write_direct_chunk in order, while the reading thread decodes and resizes the next ones.
 COMPRESS_THREADS = max(1, min(4, os.cpu_count() or 1))
 IN_FLIGHT = 2 * COMPRESS_THREADS  # frames being compressed at once: bounded, memory stays flat
 _pool: ThreadPoolExecutor | None = None

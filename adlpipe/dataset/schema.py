@@ -1,4 +1,4 @@
-"""The HDF5 dataset schema, written down once (docs/hdf5_schema.md describes the same layout).
+"""The HDF5 dataset schema, written down once (docs/reference/hdf5_schema.md describes the same layout).
 
 A dataset is an index file (`adl.h5`) and a folder of episode files beside it (`adl.shards/<run>/<bag>.h5`, one
 per bag, one run folder per ingest: adlpipe.dataset.shards). The index links each episode group to its file

@@ -146,9 +146,9 @@ def decide(success: dict[str, dict[str, bool]], peak_force: dict[str, dict[str, 
 def _needs(by_speed: list[str], succ: dict) -> int | None:
     """The fewest more scenes after which some candidate (fastest first) would be resolved not worse than all the
     others or some other resolved better than it, if every observed difference held."""
-    best = None
+    best: int | None = None
     for r in by_speed:
-        worst = 0
+        worst: int | None = 0
         for c in by_speed:
             if c == r:
                 continue
@@ -158,7 +158,7 @@ def _needs(by_speed: list[str], succ: dict) -> int | None:
             if not ways:
                 worst = None
                 break
-            worst = max(worst, min(ways))
+            worst = max(worst or 0, min(ways))
         if worst is not None and (best is None or worst < best):
             best = worst
     return best

@@ -17,6 +17,7 @@ import csv
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from ..bags.reader import BagSource
 from ..errors import AdlError
@@ -46,7 +47,7 @@ def _number(text: object, field: str, where: str, lo: float, hi: float) -> float
     if text is None or str(text).strip() == "":
         return None
     try:
-        x = float(text)
+        x = float(str(text))
     except (TypeError, ValueError):
         raise AdlError(f"{where}: {field} {text!r} is not a number") from None
     if not lo <= x <= hi:
@@ -86,7 +87,8 @@ def read_bag(path: Path) -> tuple[int, Trial]:
                        "(std_msgs/String JSON or std_msgs/Bool)")
     outcome, policy, ended = None, None, 0
     for topic, t, decode in src.messages([OUTCOME] + ([POLICY] if POLICY in topics else [])):
-        data = decode().data
+        msg: Any = decode()
+        data = msg.data
         if topic == POLICY:
             policy = str(data).strip()
         else:

@@ -1,0 +1,33 @@
+"""The `adlpipe` console command: `adlpipe <stage> [options]` is `python -m adlpipe.<stage> [options]`.
+
+    adlpipe ingest bags/*.mcap -o data/adl.h5
+    adlpipe --help          # the stages
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+from .errors import CONSOLE, run_cli
+
+STAGES = ("record", "ingest", "split", "train", "evaluate", "replay", "report", "trials", "seeds", "inspect",
+          "export", "doctor", "edit", "assess", "benchmark", "results")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if not args or args[0] in ("-h", "--help"):
+        print(f"usage: adlpipe <stage> [options]  (each stage: adlpipe <stage> --help)\nstages: {', '.join(STAGES)}")
+        return 0
+    if args[0] not in STAGES:
+        print(f"adlpipe: error: {args[0]!r} is not a stage (one of {', '.join(STAGES)})", file=sys.stderr)
+        return 2
+    stage = args[0]
+    module = importlib.import_module(f"adlpipe.{stage}")
+    CONSOLE.append(f"adlpipe.{stage}")
+    return run_cli(f"adlpipe.{stage}", module.main, args[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

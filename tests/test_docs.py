@@ -1,0 +1,60 @@
+"""Every command the documentation shows (README and docs/, in code blocks) parses with its stage's own argparse:
+an option renamed or removed fails here, not in a newcomer's terminal."""
+
+from __future__ import annotations
+
+import importlib
+import re
+import shlex
+
+import pytest
+from conftest import REPO
+
+from adlpipe.console import STAGES
+
+PAGES = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+COMMAND = re.compile(r"^(?:python -m adlpipe\.(\w+)|adlpipe (\w+))(\s.*)?$")
+
+
+def documented_commands() -> list[tuple[str, str, list[str]]]:
+    """(where, stage, arguments) of every `python -m adlpipe.X ...` or `adlpipe X ...` line in a code block, cut at
+    a comment, a pipe, a redirection or a second command; lines with a placeholder (...) are left out."""
+    out = []
+    for page in PAGES:
+        fence, held = False, ""
+        for n, line in enumerate(page.read_text().splitlines(), 1):
+            if line.lstrip().startswith("```"):
+                fence, held = not fence, ""
+                continue
+            if fence and line.rstrip().endswith("\\"):  # a command continued on the next line
+                held += line.rstrip()[:-1] + " "
+                continue
+            text, held = (held + line).strip(), ""
+            if fence and text.startswith("cd ") and "&&" in text:
+                text = text.split("&&", 1)[1].strip()
+            m = COMMAND.match(text) if fence else None
+            if m is None or "..." in text or m.group(1) == "results" or m.group(2) not in (None, *STAGES):
+                continue
+            words = shlex.split(m.group(3) or "", comments=True)
+            cut = next((i for i, w in enumerate(words) if w in ("&&", "|", ";", ">", "2>", "||")), len(words))
+            out.append((f"{page.relative_to(REPO)}:{n}", m.group(1) or m.group(2), words[:cut]))
+    return out
+
+
+COMMANDS = documented_commands()
+
+
+def test_the_documentation_shows_commands_of_every_kind() -> None:
+    stages = {stage for _, stage, _ in COMMANDS}
+    assert len(COMMANDS) > 30 and {"ingest", "train", "replay", "doctor", "trials", "export"} <= stages
+
+
+@pytest.mark.parametrize(("where", "stage", "argv"), COMMANDS, ids=[w for w, _, _ in COMMANDS])
+def test_a_documented_command_parses(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture, where: str,
+                                     stage: str, argv: list[str]) -> None:
+    monkeypatch.setenv("ADLPIPE_PARSE_ONLY", "1")
+    monkeypatch.chdir(REPO)
+    module = importlib.import_module(f"adlpipe.{stage}")
+    with pytest.raises(SystemExit) as done:
+        module.main(argv)
+    assert done.value.code == 0, f"{where}: {stage} {' '.join(argv)}: {capsys.readouterr().err.strip()}"
