@@ -243,6 +243,15 @@ def test_a_state_message_left_out_for_nan_is_not_stored_as_nan(tmp_path: Path) -
     assert not (tmp_path / "x.h5").exists()
 
 
+def test_a_suggested_topic_map_left_unfilled_is_named(mcap_bags: list[Path], tmp_path: Path) -> None:
+    """The quick start on a bag without a camera (../shared's public bags): ingest --suggest-config writes FILL_ME
+    where it found nothing; ingesting with that map names the keys still to fill, not 'missing topic FILL_ME'."""
+    config = tmp_path / "topics.yaml"
+    config.write_text("image: FILL_ME\ncamera_info: FILL_ME\ntf: /tf\n")
+    line = one_line_error(run_module("ingest", mcap_bags[0], "--config", config, "-o", tmp_path / "x.h5"))
+    assert "image, camera_info still FILL_ME" in line and "ingest --list" in line
+
+
 def test_doctor_verify_reads_a_folder_of_bags_and_refuses_a_device(world: dict, mcap_bags: list[Path]) -> None:
     """--verify with the folder record writes (its own --help's form) verifies; /dev/zero, which hashing never
     finishes, is one line at once (it hung before)."""

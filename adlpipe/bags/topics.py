@@ -9,6 +9,8 @@ from pathlib import Path
 
 from ..errors import AdlError, read_small_yaml
 
+UNFILLED = "FILL_ME"  # what ingest --suggest-config writes where it found no topic or frame
+
 
 @dataclass(frozen=True)
 class TopicMap:
@@ -52,7 +54,13 @@ class TopicMap:
         merged: dict = {}
         paths = paths if isinstance(paths, list | tuple) else [paths]
         for path in paths:
-            merged.update(cls._read(path))
+            raw = cls._read(path)
+            unfilled = [k for k, v in raw.items() if v == UNFILLED]
+            if unfilled:
+                raise AdlError(f"{path}: {', '.join(unfilled)} still {UNFILLED}: ingest --suggest-config found no "
+                               "topic for them; name them (ingest --list shows the bag's topics); adlpipe needs a "
+                               "camera (image, camera_info) and the end effector in tf")
+            merged.update(raw)
         try:
             return cls(**merged)
         except AdlError as exc:
