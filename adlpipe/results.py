@@ -25,7 +25,7 @@ from .cli import Parser
 from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import claims
 from .evaluation.outcomes import breakdown_lines
-from .evaluation.person import moving_person_lines
+from .evaluation.person import motion_training_lines, moving_person_lines
 from .evaluation.sections import grasp_tasks
 from .evaluation.tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
 from .stats import rate_cell
@@ -62,9 +62,14 @@ STUDY_FILES = {"metrics/seed0/eval_details.json": "eval_details.json",
 CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_loop_details.json",
                      "metrics/replay_moving_closed_loop_details.json": "replay_moving_closed_loop_details.json",
                      "metrics/replay_moving_open_details.json": "replay_moving_open_details.json",
+                     "metrics/replay_ensemble_details.json": "replay_ensemble_details.json",
                      "reports/report.md": "report.md", "reports/history.md": "history.md",
                      # the open-loop reference: the default pipeline's replay of the same scenes in that run
                      "../../metrics/replay_details.json": "replay_open_details.json"}
+# What pipelines/moving_person keeps (-> results/moving_person): the trio trained with the person moving, replayed
+MOVING_PERSON_FILES = {"metrics/replay_moving_details.json": "replay_moving_details.json",
+                       "metrics/replay_still_details.json": "replay_still_details.json",
+                       "reports/replay_moving.md": "replay_moving.md", "reports/replay_still.md": "replay_still.md"}
 OPEN_LOOP_OF = {"fm_cnn": "fm_cnn/euler-1", "dp_cnn": "dp_cnn/ddpm-16", "bc_cnn": "bc_cnn"}
 
 
@@ -150,6 +155,11 @@ def tables(results: Path) -> dict[str, str]:
         moving = [closed / f"replay_moving_{k}_details.json" for k in ("open", "closed_loop")]
         if all(m.exists() for m in moving):
             out["moving-person"] = moving_person_lines(ol, cl, *map(_load, moving))
+        trained = results / "moving_person"
+        if (trained / "replay_moving_details.json").exists() and (trained / "replay_still_details.json").exists():
+            out["moving-trained"] = motion_training_lines(
+                _load(moving[0]), _load(trained / "replay_moving_details.json"), ol,
+                _load(trained / "replay_still_details.json"))
     return {k: "\n".join(v) for k, v in out.items() if v}
 
 
@@ -202,6 +212,15 @@ def save_closed_loop(pipeline: Path, results: Path) -> None:
     keep(pipeline, CLOSED_LOOP_FILES, "*.csv", results / "closed_loop")
 
 
+def save_moving_person(pipeline: Path, results: Path) -> None:
+    """Keep pipelines/moving_person's replays and training logs in RESULTS/moving_person."""
+    first = next(iter(MOVING_PERSON_FILES))
+    if not (pipeline / first).is_file():
+        raise AdlError(f"{pipeline}: the moving-person trio has not been replayed ({first} missing); run dvc repro "
+                       "there")
+    keep(pipeline, MOVING_PERSON_FILES, "*.csv", results / "moving_person")
+
+
 def _block(name: str) -> re.Pattern:
     return re.compile(rf"(<!-- results:{re.escape(name)} -->\n)(.*?)(<!-- /results:{re.escape(name)} -->)", re.S)
 
@@ -233,9 +252,13 @@ def main(argv: list[str] | None = None) -> int:
                    "RESULTS/seeds/seeds.json")
     p.add_argument("--save-study", type=Path, metavar="PIPELINE", help="first keep the study's details, reports and "
                    "training logs (pipelines/study) in RESULTS/study")
+    p.add_argument("--save-moving-person", type=Path, metavar="PIPELINE", help="first keep the moving-person "
+                   "trio's replays and training logs (pipelines/moving_person) in RESULTS/moving_person")
     p.add_argument("--save-closed-loop", type=Path, metavar="PIPELINE", help="first keep the closed-loop pipeline's "
                    "details, reports and training logs (pipelines/closed_loop) in RESULTS/closed_loop")
     args = p.parse_args(argv)
+    if args.save_moving_person is not None:
+        save_moving_person(args.save_moving_person, args.results)
     if args.save_study is not None:
         save_study(args.save_study, args.results)
     if args.save_closed_loop is not None:

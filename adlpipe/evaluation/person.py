@@ -48,3 +48,33 @@ def moving_person_lines(still_open: dict, still_closed: dict, moving_open: dict,
               "it: adlpipe.sim.person); per task: the change in success, points. The first-frame (open-loop) "
               "policies see the person before they move; closed loop re-plans from live frames."]
     return lines
+
+
+def motion_training_lines(still_moving: dict, trained_moving: dict, still_still: dict,
+                          trained_still: dict) -> list[str]:
+    """The first-frame trio trained with the person still against the same trio trained with the person moving
+    (pipelines/moving_person), each on the same fresh scenes with the person moving and still: success per policy,
+    the paired difference (McNemar's exact test) and the share of scenes with a force on the person over the limit."""
+    lines = ["| policy | person | trained still [95 %] | trained moving [95 %] | moving - still training "
+             f"(discordant, McNemar) | force > {FORCE_LIMIT_N:.0f} N: trained still / moving |",
+             "| --- | --- | ---: | ---: | --- | --- |"]
+    for world, a, b in (("moving", still_moving, trained_moving), ("still", still_still, trained_still)):
+        for label in ("fm_cnn/euler-1", "dp_cnn/ddpm-16", "bc_cnn"):
+            pa, pb = a.get("per_episode", {}).get(label), b.get("per_episode", {}).get(label)
+            if not pa or not pb:
+                continue
+            names = sorted(n for n in pa if n in pb)
+            x, y = [bool(pb[n]) for n in names], [bool(pa[n]) for n in names]
+            forces = []
+            for d in (a, b):
+                diag = d.get("diagnostics", {}).get(label, {})
+                forces.append(rate_cell(sum(diag[n].get("peak_force_n", 0.0) > FORCE_LIMIT_N for n in names
+                                            if n in diag), len(names)))
+            lines.append(f"| {label} | {world} | {rate_cell(sum(y), len(y))} | {rate_cell(sum(x), len(x))} | "
+                         f"{100 * (sum(x) - sum(y)) / max(len(x), 1):+.0f} points ({paired_success(x, y)}) | "
+                         f"{forces[0]} / {forces[1]} |")
+    if len(lines) == 2:
+        return []
+    return lines + ["", "The same fresh scenes (200: 20 per task) in each row pair; trained still: the default "
+                    "pipeline's trio; trained moving: the same recipe on the default's recording with the person "
+                    "moving in every demonstration (record --moving-person)."]
