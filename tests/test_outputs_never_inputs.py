@@ -4,11 +4,29 @@ index, its episode files or the split beside it), are refused in one line before
 from __future__ import annotations
 
 import hashlib
+import importlib
 from pathlib import Path
 
 import pytest
+from conftest import copy_dataset, one_line_error, run_module
 
-from tests.conftest import copy_dataset, one_line_error, run_module
+from adlpipe.errors import run_cli
+
+
+class Proc:
+    def __init__(self, rc: int, stderr: str) -> None:
+        self.returncode, self.stderr = rc, stderr
+
+
+def run_stage(capsys: pytest.CaptureFixture, stage: str, argv: list[str]) -> Proc:
+    """The stage through its real entry point (run_cli + main), in this process: the refusal comes before any work."""
+    module = importlib.import_module(f"adlpipe.{stage}")
+    capsys.readouterr()
+    try:
+        rc = run_cli(f"adlpipe.{stage}", module.main, argv)
+    except SystemExit as exc:
+        rc = int(exc.code or 0)
+    return Proc(rc, capsys.readouterr().err)
 
 
 @pytest.fixture(scope="module")
@@ -57,10 +75,11 @@ def digest(path: Path) -> str:
 
 
 @pytest.mark.parametrize(("stage", "argv"), CASES, ids=[f"{s}:{a.split(' -')[-1]}" for s, a in CASES])
-def test_an_output_that_names_an_input_is_refused_and_the_input_kept(world: dict[str, Path], stage: str,
+def test_an_output_that_names_an_input_is_refused_and_the_input_kept(capsys: pytest.CaptureFixture,
+                                                                       world: dict[str, Path], stage: str,
                                                                        argv: str) -> None:
     files = {k: v for k, v in world.items() if v.exists()}
     before = {k: digest(v) for k, v in files.items() if v.is_file()}
-    line = one_line_error(run_module(stage, *argv.format(**world).split()))
+    line = one_line_error(run_stage(capsys, stage, argv.format(**world).split()))
     assert ("is an input of this command" in line or "HDF5 file" in line or "episode files" in line), line
     assert {k: digest(v) for k, v in files.items() if v.is_file()} == before

@@ -30,7 +30,8 @@ from .frames import nearest_index
 
 RESAMPLE_HZ = 50.0  # the end-effector path is resampled at this rate for speed, jerk and idle time
 DEPTH_SAMPLES = 8  # depth images per episode read for the share of holes
-MIN_FOR_OUTLIERS = 5  # a task needs this many episodes before one of them is called an outlier
+MIN_FOR_OUTLIERS = 3  # a task needs this many episodes before one of them is called an outlier (30 clean
+#                       episodes, 3 per task: none called one)
 OUTLIER_FIGURES = ("duration_s", "path_m", "peak_speed_mps", "fps")
 
 
