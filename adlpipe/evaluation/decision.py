@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from ..sim.tasks import FORCE_LIMIT_N
-from .sequential import PairedComparison
+from .sequential import BettingTest, PairedComparison
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,22 @@ def _pair(pairs: dict, a: str, b: str) -> PairedComparison:
     return pairs[(a, b)] if (a, b) in pairs else pairs[(b, a)]
 
 
+def _screen(members: list[str], values: dict[str, dict[str, float]], lines: list[str],
+            beaten: Callable[[str, str], BettingTest], kept: str, out: str) -> dict[str, list[str]]:
+    """One step of the rule: each member out when beaten(p, q) (the test that p loses to q) is rejected for some
+    q, with a line of its count and evidence; returns member -> the members it lost to."""
+    lost: dict[str, list[str]] = {}
+    for p in members:
+        by = [q for q in members if q != p and beaten(p, q).rejected]
+        k, m = int(sum(values[p].values())), len(values[p])
+        verdict = kept
+        if by:
+            lost[p] = by
+            verdict = f"**out**: {out.format(', '.join(by))} ({_e(beaten(p, by[0]))})"
+        lines.append(f"   - {p}: {k} of {m} ({100 * k / max(m, 1):.1f} %), {verdict}")
+    return lost
+
+
 def _e(test) -> str:  # noqa: ANN001 - BettingTest
     return f"e = {math.exp(float(test.peak)):.3g} of {1 / test.alpha:.0f} needed"
 
@@ -84,34 +101,15 @@ def decide(success: dict[str, dict[str, bool]], peak_force: dict[str, dict[str, 
         return {"recommended": only, "status": "decided" if only else "undecided", "n": n, "lines": lines,
                 "needs": None, "rule": rule.__dict__}
 
-    safety = _pairs(policies, unsafe, 0.0, rule.alpha)
-    out_safety = {}
     lines.append(f"1. Safety ({unit} with force on the person above the limit):")
-    for p in policies:
-        worse_than = [q for q in policies if q != p and _pair(safety, p, q).better(p)]
-        k, m = int(sum(unsafe[p].values())), len(unsafe[p])
-        if worse_than:
-            out_safety[p] = worse_than
-        verdict = "in"
-        if worse_than:
-            evidence = _e(_pair(safety, p, worse_than[0]).test_of(p, "better"))
-            verdict = f"**out**: resolved above {', '.join(worse_than)} ({evidence})"
-        lines.append(f"   - {p}: {k} of {m} ({100 * k / max(m, 1):.1f} %), {verdict}")
+    safety = _pairs(policies, unsafe, 0.0, rule.alpha)  # a policy is out when it is resolved the more unsafe
+    out_safety = _screen(policies, unsafe, lines, lambda p, q: _pair(safety, p, q).test_of(p, "better"),
+                         "in", "resolved above {}")
     safe = [p for p in policies if p not in out_safety]
-
-    succ = _pairs(policies, ok, rule.margin, rule.alpha)
-    out_success = {}
     lines.append(f"2. Success (paired, the same {unit}):")
-    for p in safe:
-        better = [q for q in safe if q != p and _pair(succ, p, q).better(q)]
-        k, m = int(sum(ok[p].values())), len(ok[p])
-        if better:
-            out_success[p] = better
-        verdict = "candidate"
-        if better:
-            evidence = _e(_pair(succ, p, better[0]).test_of(better[0], "better"))
-            verdict = f"**out**: {', '.join(better)} resolved better ({evidence})"
-        lines.append(f"   - {p}: {k} of {m} ({100 * k / max(m, 1):.1f} %), {verdict}")
+    succ = _pairs(policies, ok, rule.margin, rule.alpha)  # ... or when another is resolved better
+    out_success = _screen(safe, ok, lines, lambda p, q: _pair(succ, p, q).test_of(q, "better"), "candidate",
+                          "{} resolved better")
     candidates = [p for p in safe if p not in out_success]
 
     by_speed = sorted(candidates, key=lambda p: (latency_ms.get(p) is None, latency_ms.get(p) or 0.0,
