@@ -36,7 +36,13 @@ def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progre
     with exclusive(out):  # a second export into the same OUT stops at once instead of deleting this one's work
         if out.exists():
             raise AdlError(f"{out}: already exists; export into a new folder")
-        return _export_locked(data, out, names, progress, video, maps)
+        try:
+            return _export_locked(data, out, names, progress, video, maps)
+        except OSError as exc:  # name OUT, not the hidden folder the export is written in before it is renamed
+            tmp = out.with_name(f".{out.name}.tmp")
+            if exc.filename is not None and str(exc.filename).startswith(str(tmp)):
+                raise OSError(exc.errno, exc.strerror, str(out / Path(exc.filename).relative_to(tmp))) from None
+            raise
 
 
 def _export_locked(data: Path, out: Path, names: list[str] | None, progress: bool, video: bool,
@@ -51,10 +57,14 @@ def _export_locked(data: Path, out: Path, names: list[str] | None, progress: boo
             layout = plan(f, names, video, maps)
             tasks = sorted({str(f[schema.EPISODES][n].attrs["task"]) for n in names})
             export = Export(tmp, layout, tasks)
-            for i, n in enumerate(tqdm(names, desc="export", unit="episode", file=sys.stderr,
-                                       disable=None if progress else True)):
-                export.add(f[schema.EPISODES][n], i)
-            info = export.finish()
+            try:
+                for i, n in enumerate(tqdm(names, desc="export", unit="episode", file=sys.stderr,
+                                           disable=None if progress else True)):
+                    export.add(f[schema.EPISODES][n], i)
+                info = export.finish()
+            except BaseException:
+                export.abort()
+                raise
         check_interrupted()  # a Ctrl-C that landed in a finaliser (PyAV's, h5py's) was swallowed: commit nothing
         tmp.rename(out)
         note_committed(out)

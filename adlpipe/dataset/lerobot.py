@@ -30,6 +30,7 @@ columns: adlpipe/name, and adlpipe/<camera>/K and adlpipe/<camera>/T_base_camera
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -293,6 +294,17 @@ class Export:
         if self.topic_map is None:
             self.topic_map = str(g.attrs.get("topic_map", ""))
         return cols
+
+    def abort(self) -> None:
+        """A failed export (a full disk, a Ctrl-C): drop the open writers without flushing them, so none writes again
+        from its finaliser (pyarrow's ParquetWriter.__del__ printed a trace after the stage's one line)."""
+        writer, self.writer = self.writer, None
+        if writer is not None:
+            with contextlib.suppress(Exception):
+                writer.close()
+        for videos in self.videos.values():
+            with contextlib.suppress(Exception):
+                videos.close()
 
     def finish(self) -> dict:
         """Close the data and video files and write meta/ (info, stats, tasks, episodes) and the dataset card."""
