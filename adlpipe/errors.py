@@ -120,7 +120,8 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
     previous = signal.getsignal(signal.SIGINT) if main_thread else None
     if previous is not None and previous is not signal.SIG_IGN:
         signal.signal(signal.SIGINT, _on_sigint)
-        sys.unraisablehook = _quiet_interrupts
+        if sys.unraisablehook is sys.__unraisablehook__:  # a hook someone else set is theirs to keep
+            sys.unraisablehook = _quiet_interrupts
     try:
         return main(argv)
     except AdlError as exc:
