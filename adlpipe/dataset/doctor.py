@@ -17,6 +17,7 @@ from scipy.stats import median_abs_deviation
 
 from . import schema
 from .doctor_checks import (
+    by_task,
     camera_figures,
     dataset_flags,
     end_speed,
@@ -286,10 +287,7 @@ def outlier_flags(figs: dict[str, dict], limits: Limits = Limits()) -> None:
     """Add an outlier flag to every episode whose duration, path length, peak speed or frame rate lies beyond
     limits.z robust z-scores (median and normal-scaled MAD, scipy) of its task's episodes and more than
     limits.outlier_share of the median from it; tasks with fewer than MIN_FOR_OUTLIERS episodes are left alone."""
-    by_task: dict[str, list[str]] = {}
-    for name, f in figs.items():
-        by_task.setdefault(f["task"], []).append(name)
-    for names in by_task.values():
+    for names in by_task(figs).values():
         if len(names) < MIN_FOR_OUTLIERS:
             continue
         for key in OUTLIER_FIGURES:
@@ -307,10 +305,7 @@ def outlier_flags(figs: dict[str, dict], limits: Limits = Limits()) -> None:
 def duplicate_flags(figs: dict[str, dict], signatures: dict[str, np.ndarray], stamps: dict[str, int],
                     limits: Limits) -> None:
     """Flag each episode that nearly repeats an earlier recording of its task (doctor_signals.near_duplicates)."""
-    by_task: dict[str, list[str]] = {}
-    for name, f in figs.items():
-        by_task.setdefault(f["task"], []).append(name)
-    for names in by_task.values():
+    for names in by_task(figs).values():
         if len(names) < 2:
             continue
         found = near_duplicates(names, np.stack([signatures[n] for n in names]), [stamps[n] for n in names],

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import h5py
 import numpy as np
+from scipy.spatial.distance import cdist
 
 CLOCK_MAX_LAG_S = 0.5  # lags searched between image motion and end-effector speed
 SAMPLES = 8  # frames read for colour and brightness
@@ -93,8 +94,12 @@ def path_signature(ee_t: np.ndarray, ee_pos: np.ndarray, duration: float) -> np.
     return np.stack([np.interp(grid, ee_t, ee_pos[:, d]) for d in range(3)], 1)
 
 
-def _rms(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.sqrt(((a - b) ** 2).sum(-1).mean()))
+def by_task(figs: dict[str, dict], names: list[str] | None = None) -> dict[str, list[str]]:
+    """Episode names (all, or `names`) grouped by their task, each group in the given order."""
+    out: dict[str, list[str]] = {}
+    for n in figs if names is None else names:
+        out.setdefault(figs[n]["task"], []).append(n)
+    return out
 
 
 def dataset_flags(figs: dict[str, dict], paths: dict[str, np.ndarray], limits) -> None:  # noqa: ANN001 - Limits
@@ -107,31 +112,29 @@ def dataset_flags(figs: dict[str, dict], paths: dict[str, np.ndarray], limits) -
     bright = rgb.mean(1)
     fps = np.array([figs[n]["fps"] for n in names])
     end = np.array([figs[n]["end_speed_mps"] for n in names])
+    med_bright, med_fps, med_end = float(np.median(bright)), float(np.median(fps)), float(np.median(end))
     for k, n in enumerate(names):
         f = figs[n]
         as_is, swapped = np.abs(rgb[k] - med_rgb).sum(), np.abs(rgb[k][::-1] - med_rgb).sum()
         if as_is > limits.colour_off and swapped < limits.swap_gain * as_is:
             f["flags"].append(f"colour order: red and blue swapped match the dataset's mean colour "
                               f"{swapped:.3f} against {as_is:.3f} as stored (BGR stored as RGB?)")
-        if bright[k] < limits.dark * np.median(bright):
+        if bright[k] < limits.dark * med_bright:
             f["flags"].append(f"dark images: mean brightness {bright[k]:.2f} against the dataset's median "
-                              f"{np.median(bright):.2f} (limit {limits.dark:.0%} of it)")
-        if end[k] > limits.end_speed_mps and end[k] > 3 * np.median(end):
+                              f"{med_bright:.2f} (limit {limits.dark:.0%} of it)")
+        if end[k] > limits.end_speed_mps and end[k] > 3 * med_end:
             f["flags"].append(f"cut off: the end effector still moves at {end[k]:.2f} m/s over the last 0.3 s, where "
-                              f"the dataset's episodes end at {np.median(end):.2f} m/s (median; limit "
+                              f"the dataset's episodes end at {med_end:.2f} m/s (median; limit "
                               f"{limits.end_speed_mps} m/s and 3x the median)")
-        if fps[k] < limits.slow_camera * np.median(fps):
-            f["flags"].append(f"camera rate: {fps[k]:.1f} fps against the dataset's median {np.median(fps):.1f} "
+        if fps[k] < limits.slow_camera * med_fps:
+            f["flags"].append(f"camera rate: {fps[k]:.1f} fps against the dataset's median {med_fps:.1f} "
                               f"(limit {limits.slow_camera:.0%} of it)")
     _gripper_flags(figs, names)
     _path_flags(figs, names, paths, limits)
 
 
 def _gripper_flags(figs: dict[str, dict], names: list[str]) -> None:
-    by_task: dict[str, list[str]] = {}
-    for n in names:
-        by_task.setdefault(figs[n]["task"], []).append(n)
-    for members in by_task.values():
+    for members in by_task(figs, names).values():
         grasping = [n for n in members if (figs[n]["gripper_events"] or 0) > 0]
         if len(grasping) < 2:
             continue
@@ -142,23 +145,25 @@ def _gripper_flags(figs: dict[str, dict], names: list[str]) -> None:
 
 
 def _path_flags(figs: dict[str, dict], names: list[str], paths: dict[str, np.ndarray], limits) -> None:  # noqa: ANN001
-    """Wrong task label (the path nearer another task's episodes than its own) and time-reversed copies."""
-    by_task: dict[str, list[str]] = {}
-    for n in names:
-        by_task.setdefault(figs[n]["task"], []).append(n)
-    for n in names:
+    """Wrong task label (the path nearer another task's episodes than its own) and time-reversed copies. One
+    episode's RMS distances to every path, forwards and run backwards, at a time (scipy's cdist): linear memory."""
+    forward = np.stack([paths[n].ravel() for n in names])
+    backward = np.stack([paths[n][::-1].ravel() for n in names])
+    groups = {task: np.array([names.index(m) for m in members]) for task, members in by_task(figs, names).items()}
+    for k, n in enumerate(names):
+        fwd = cdist(forward[k:k + 1], forward)[0] / np.sqrt(PATH_POINTS)  # RMS over the path's points
+        back = cdist(forward[k:k + 1], backward)[0] / np.sqrt(PATH_POINTS)
         own = figs[n]["task"]
-        mean_to = {task: float(np.mean([_rms(paths[n], paths[m]) for m in members if m != n]))
-                   for task, members in by_task.items() if len([m for m in members if m != n]) >= 2}
+        mean_to = {task: float(fwd[idx[idx != k]].mean()) for task, idx in groups.items() if (idx != k).sum() >= 2}
         if own in mean_to and len(mean_to) > 1:
             other = min((t for t in mean_to if t != own), key=lambda t: mean_to[t])
             if mean_to[other] < limits.label_ratio * mean_to[own]:
                 figs[n]["flags"].append(f"task label: its path is {100 * mean_to[other]:.1f} cm (RMS) from the "
                                         f"episodes of {other!r} and {100 * mean_to[own]:.1f} cm from those of its own "
                                         f"task {own!r} (limit {limits.label_ratio:.0%})")
-        for m in names:  # much nearer backwards than forwards: not a path that returns the way it came
-            back = _rms(paths[n], paths[m][::-1])
-            if m != n and back < limits.reversed_m and back < 0.2 * _rms(paths[n], paths[m]):
-                figs[n]["flags"].append(f"time-reversed: its path is {m}'s run backwards ({1000 * back:.1f} mm "
-                                        f"RMS, limit {1000 * limits.reversed_m:.0f} mm)")
-                break
+        # much nearer backwards than forwards: not a path that returns the way it came
+        copies = np.flatnonzero((back < limits.reversed_m) & (back < 0.2 * fwd) & (np.arange(len(names)) != k))
+        if len(copies):
+            m = int(copies[0])
+            figs[n]["flags"].append(f"time-reversed: its path is {names[m]}'s run backwards ({1000 * back[m]:.1f} mm "
+                                    f"RMS, limit {1000 * limits.reversed_m:.0f} mm)")
