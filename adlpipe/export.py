@@ -39,15 +39,20 @@ def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progre
         try:
             return _export_locked(data, out, names, progress, video, maps)
         except OSError as exc:  # name OUT, not the hidden folder the export is written in before it is renamed
-            tmp = out.with_name(f".{out.name}.tmp")
+            tmp = _hidden(out)
             if exc.filename is not None and str(exc.filename).startswith(str(tmp)):
                 raise OSError(exc.errno, exc.strerror, str(out / Path(exc.filename).relative_to(tmp))) from None
             raise
 
 
+def _hidden(out: Path) -> Path:
+    """The folder an export is written in, beside OUT, until it is renamed into place."""
+    return out.with_name(f".{out.name}.tmp")
+
+
 def _export_locked(data: Path, out: Path, names: list[str] | None, progress: bool, video: bool,
                    maps: bool) -> dict:
-    tmp = out.with_name(f".{out.name}.tmp")
+    tmp = _hidden(out)
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         with schema.open_dataset(data, names or None) as f:  # every episode it reads is checked

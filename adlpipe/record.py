@@ -104,10 +104,9 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
                 tn = ns(t)
                 events.append((tn, 8, topics.joints, M.JOINT_STATE,
                                lambda tn=tn, qp=qp, qv=qv: f.joint_state(tn, st.joint_names, qp, qv)))
-        end = ns(max(t for t, _, _ in st.camera) + 0.01)
-        for topic, msgtype, value in outcome or []:
-            events.append((end, 10, topic, msgtype, lambda v=value, b=msgtype == M.BOOL: f.boolean(v) if b
-                           else f.string(str(v))))
+        for topic, msgtype, value in outcome or []:  # a trial's outcome, after its last frame (frames in time order)
+            events.append((ns(st.camera[-1][0] + 0.01), 10, topic, msgtype,
+                           lambda v=value, b=msgtype == M.BOOL: f.boolean(v) if b else f.string(str(v))))
         events.sort(key=lambda e: (e[0], e[1]))
         w.declare_counts(Counter(topic for _, _, topic, _, _ in events))
         for tn, _, topic, msgtype, build in events:

@@ -111,17 +111,14 @@ class PairedComparison:
         for key, t in self.tests.items():
             t.update(d if key.startswith("a_") else -d)
 
-    @property
-    def n(self) -> int:
-        return self.tests["a_better"].n
+    def test_of(self, who: str, claim: str) -> BettingTest:
+        """The test of `who` (a or b by name) making `claim` ("better" or "not_worse") against the other."""
+        return self.tests[("a" if who == self.a else "b") + f"_{claim}"]
 
     def better(self, who: str) -> bool | np.ndarray:
-        """Whether `who` (a or b) is resolved better than the other."""
-        return self.tests[("a" if who == self.a else "b") + "_better"].rejected
+        """Whether `who` is resolved better than the other."""
+        return self.test_of(who, "better").rejected
 
     def not_worse(self, who: str) -> bool | np.ndarray:
         """Whether `who` is resolved not worse than the other by more than the margin."""
-        return self.tests[("a" if who == self.a else "b") + "_not_worse"].rejected
-
-    def test_of(self, who: str, claim: str) -> BettingTest:
-        return self.tests[("a" if who == self.a else "b") + f"_{claim}"]
+        return self.test_of(who, "not_worse").rejected
