@@ -2,6 +2,8 @@
 
     cd pipelines/study && dvc repro split && python ../train_side_by_side.py && dvc repro
     python ../train_side_by_side.py train_seeds train_closed_loop     # only these stages (names or their prefixes)
+    ADLPIPE_SIDE_BY_SIDE=3 python ../train_side_by_side.py            # three at once (a trio on 2 cores: all end
+                                                                      # together instead of the third alone)
 
 Any pipeline under pipelines/ whose training stages are foreach stages named train...@... (train@, train_state@,
 train_closed_loop@, train_seeds@, train_reg@: pipelines/study, pipelines/pusht, pipelines/pusht_levers, ...).
@@ -15,6 +17,8 @@ date is not run again; a killed run resumes each training from its last checkpoi
 
 from __future__ import annotations
 
+import os
+import shutil
 import subprocess
 import sys
 import time
@@ -24,7 +28,7 @@ from pathlib import Path
 from dvc.repo import Repo
 
 ORDER = ("train@", "train_closed_loop@", "train_seeds@")  # run first, in this order; other train...@ stages after
-SIDE_BY_SIDE = 2
+SIDE_BY_SIDE = int(os.environ.get("ADLPIPE_SIDE_BY_SIDE", "2"))
 
 
 def is_training(name: str) -> bool:
@@ -41,8 +45,13 @@ def stale_training_stages(repo: Repo, wanted: tuple[str, ...] = ("train",)) -> l
 
 def run(stage, logs: Path) -> tuple[str, int, float]:  # noqa: ANN001 - a dvc Stage
     t0 = time.time()
+    for out in stage.outs:  # as dvc repro does: a stale stage's outputs go before its command runs (train refuses
+        # to replace a stage's output by hand)
+        path = Path(out.fs_path)
+        shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
     with open(logs / f"{stage.name.replace('@', '_')}.log", "w") as log:
-        rc = subprocess.run(stage.cmd, shell=True, stdout=log, stderr=subprocess.STDOUT).returncode
+        env = {**os.environ, "DVC_STAGE": stage.addressing}  # what dvc repro sets: a stage writes its own outputs
+        rc = subprocess.run(stage.cmd, shell=True, stdout=log, stderr=subprocess.STDOUT, env=env).returncode
     return stage.name, rc, time.time() - t0
 
 
