@@ -25,9 +25,9 @@ from .lock import exclusive
 
 
 def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progress: bool = False,
-                   video: bool = True, maps: bool = True) -> dict:
+                   video: bool = True, maps: str = "png") -> dict:
     """Write the LeRobot v3 export of `names` (default: every episode) to `out`, its cameras as MP4 video (or PNG
-    images); returns its info.json."""
+    images), its depth and affordance maps as `maps` (png, video or none); returns its info.json."""
     if out.exists():
         raise AdlError(f"{out}: already exists; export into a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -51,7 +51,7 @@ def _hidden(out: Path) -> Path:
 
 
 def _export_locked(data: Path, out: Path, names: list[str] | None, progress: bool, video: bool,
-                   maps: bool) -> dict:
+                   maps: str) -> dict:
     tmp = _hidden(out)
     shutil.rmtree(tmp, ignore_errors=True)
     try:
@@ -89,9 +89,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--images", choices=["video", "png"], default="video",
                    help="the cameras as MP4 video, as LeRobot records them (default), or as lossless PNG images "
                         "in the data files; depth and affordance maps are always PNG")
-    p.add_argument("--maps", choices=["png", "none"], default="png",
-                   help="the depth and affordance maps: lossless PNG images in the data files (default), or left "
-                        "out (for readers that take no image features, such as kalanos 0.8.2)")
+    p.add_argument("--maps", choices=["png", "video", "none"], default="png",
+                   help="the depth and affordance maps: lossless PNG images in the data files (default), MP4 "
+                        "video beside the cameras' (8-bit grey, depth 2 cm a level: lossy; for readers of video "
+                        "features only), or left out (for readers that take no image features, such as kalanos 0.8.2)")
     p.add_argument("--skip-bad", action="store_true",
                    help="leave out episodes whose files cannot be read (each named) instead of stopping")
     p.io(inputs=["data", "split"], outputs=["out"])
@@ -108,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         if not names:
             raise AdlError(f"{args.data}: no readable episodes to export")
     info = export_lerobot(args.data, args.out, names, progress=True, video=args.images == "video",
-                          maps=args.maps == "png")
+                          maps=args.maps)
     print(f"{args.out}: LeRobotDataset {info['codebase_version']}, {info['total_episodes']} episode(s), "
           f"{info['total_frames']} frames at {info['fps']} fps, {info['total_tasks']} task(s)")
     return 0

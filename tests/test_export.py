@@ -201,3 +201,35 @@ def test_an_episode_named_twice_is_exported_once_and_a_second_export_waits_its_t
     with exclusive(tmp_path / "busy"):  # another export holds this OUT: the second stops, deleting nothing
         line = one_line_error(run_module("export", ingested, tmp_path / "busy"))
     assert "in use by pid" in line and not (tmp_path / "busy").exists()
+
+
+def test_maps_as_video_or_left_out(ingested: Path, tmp_path: Path) -> None:
+    """--maps video: depth (a grey level = 20 mm) and affordance (0-255) as MP4 beside the camera's, none in the data
+    files; --maps none: neither anywhere. The decoded depth matches the source within the 1 cm step and the codec."""
+    import av
+
+    out = tmp_path / "video"
+    export_lerobot(ingested, out, maps="video")
+    info = json.loads((out / "meta" / "info.json").read_text())
+    depth, aff = info["features"]["observation.images.depth"], info["features"]["observation.images.affordance"]
+    assert depth["dtype"] == aff["dtype"] == "video"
+    assert depth["info"]["video.is_depth_map"] and depth["info"]["mm_per_level"] == 20
+    assert not aff["info"]["video.is_depth_map"]
+    data = pq.read_table(out / "data" / "chunk-000" / "file-000.parquet")
+    assert not {"observation.images.depth", "observation.images.affordance"} & set(data.column_names)
+    with av.open(str(out / "videos" / "observation.images.depth" / "chunk-000" / "file-000.mp4")) as c:
+        frames = [fr.to_ndarray(format="rgb24") for fr in c.decode(video=0)]
+    assert len(frames) == info["total_frames"]
+    first = source(ingested)[0]
+    assert first["depth0"] is not None  # the recorder's bags carry depth
+    level = first["depth0"].astype(float) / 20
+    seen = level < 255
+    assert seen.mean() > 0.9 and np.abs(frames[0][..., 0].astype(float) - level)[seen].mean() < 1.5  # grey levels
+    stats = json.loads((out / "meta" / "stats.json").read_text())
+    assert "observation.images.affordance" in stats and "observation.images.depth" in stats
+
+    bare = tmp_path / "none"
+    export_lerobot(ingested, bare, maps="none")
+    feats = json.loads((bare / "meta" / "info.json").read_text())["features"]
+    assert "observation.images.depth" not in feats and "observation.images.affordance" not in feats
+    assert not (bare / "videos" / "observation.images.depth").exists()

@@ -17,15 +17,16 @@
 
 Per frame: observation.images.rgb (video, or PNG; in a dataset of several cameras, observation.images.<name> for
 each camera instead: the other cameras' frames nearest each frame of the first one, black where none),
-observation.images.depth
-(16-bit PNG, millimetres, 0 = no return; when the dataset has depth), observation.images.affordance (8-bit PNG of
-the map; when it has maps), observation.state (end effector x, y, z in the base frame, the joints, the gripper; NaN
-where a bag had no sample near the frame), action (the end effector's position at the next frame; the last frame
-repeats its own), observation.camera_timestamp (the camera's stamp, s from the episode's first frame: jitter and
-dropped stretches show here), timestamp (frame_index / fps, LeRobot's convention), frame_index, episode_index, index,
+observation.images.depth (16-bit PNG, millimetres, 0 = no return; when the dataset has depth),
+observation.images.affordance (8-bit PNG of the map; when it has maps; with maps="video" both are MP4 video instead,
+grey in 3 channels, depth at DEPTH_VIDEO_MM a level: lossy, for readers that take video features only; maps="none"
+leaves both out), observation.state (end effector x, y, z in the base frame, the joints, the gripper; NaN where a
+bag had no sample near the frame), action (the end effector's position at the next frame; the last frame repeats its
+own), observation.camera_timestamp (the camera's stamp, s from the episode's first frame: jitter and dropped
+stretches show here), timestamp (frame_index / fps, LeRobot's convention), frame_index, episode_index, index,
 task_index. PNG images are stored in the parquet files as Hugging Face `datasets` Image structs ({bytes, path}),
-as LeRobot does for image features; depth and affordance maps always are (lossless). Per episode, beside LeRobot's
-columns: adlpipe/name, and adlpipe/<camera>/K and adlpipe/<camera>/T_base_camera (its calibration, row-major).
+as LeRobot does for image features; depth and affordance maps are by default (lossless). Per episode, beside
+LeRobot's columns: adlpipe/name, and adlpipe/<camera>/K and adlpipe/<camera>/T_base_camera (its calibration, row-major).
 """
 
 from __future__ import annotations
@@ -51,6 +52,9 @@ CHUNKS_SIZE = 1000  # files per chunk folder
 DATA_FILE_MB = 100  # a data file is closed after this much
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 EPISODES_PATH = "meta/episodes/chunk-000/file-000.parquet"
+MAPS = ("png", "video", "none")  # how the depth and affordance maps are exported
+DEPTH_VIDEO_MM = 20  # a depth video's grey level is this many mm (8 bits: 0-5.1 m, the default scenes' 95th
+# percentile is 3.8 m; PNG keeps 16-bit mm)
 RGB, DEPTH, AFFORDANCE = "observation.images.rgb", "observation.images.depth", "observation.images.affordance"
 STATE, ACTION = "observation.state", "action"
 CAMERA_TIMESTAMP = "observation.camera_timestamp"  # the camera's stamp (timestamp is frame_index / fps, LeRobot's)
@@ -116,6 +120,7 @@ class Layout:
     fps: int
     cameras: list[str] = field(default_factory=list)  # every camera's name when there are several, else empty
     video: bool = True  # the cameras as MP4 video (LeRobot's own form), else PNG in the data files
+    maps_video: bool = False  # depth and affordance as MP4 video (8-bit grey, lossy), else PNG in the data files
 
     def image_key(self, camera: str) -> str:
         return f"observation.images.{camera}" if self.cameras else RGB
@@ -125,9 +130,11 @@ class Layout:
         camera = video_feature(self.size, self.fps) if self.video else {**img, "shape": [self.size, self.size, 3]}
         f: dict[str, dict] = {self.image_key(c): camera for c in self.cameras or ["rgb"]}
         if self.depth:
-            f[DEPTH] = {**img, "shape": [self.size, self.size, 1], "info": {"is_depth_map": True, "unit": "mm"}}
+            f[DEPTH] = (video_feature(self.size, self.fps, depth_mm_per_level=DEPTH_VIDEO_MM) if self.maps_video else
+                        {**img, "shape": [self.size, self.size, 1], "info": {"is_depth_map": True, "unit": "mm"}})
         if self.affordance:
-            f[AFFORDANCE] = {**img, "shape": [self.size, self.size, 1]}
+            f[AFFORDANCE] = (video_feature(self.size, self.fps) if self.maps_video else
+                             {**img, "shape": [self.size, self.size, 1]})
         state = ["ee_x", "ee_y", "ee_z", *self.joint_names, "gripper"]
         f[STATE] = {"dtype": "float32", "shape": [len(state)], "names": state}
         f[ACTION] = {"dtype": "float32", "shape": [3], "names": ["ee_x", "ee_y", "ee_z"]}
@@ -154,7 +161,7 @@ class Layout:
         return pa.schema(fields, metadata={"huggingface": json.dumps(hf)})
 
 
-def plan(f: h5py.File, names: list[str], video: bool = True, maps: bool = True) -> Layout:
+def plan(f: h5py.File, names: list[str], video: bool = True, maps: str = "png") -> Layout:
     """Decide the features from the episodes' small arrays; every episode must have the same joints."""
     joints: list[str] | None = None
     cameras: list[str] | None = None
@@ -182,7 +189,11 @@ def plan(f: h5py.File, names: list[str], video: bool = True, maps: bool = True) 
             rates.append(1.0 / float(np.median(np.diff(t))))
     fps = max(1, int(round(float(np.median(rates))))) if rates else 1
     several = cameras if cameras and len(cameras) > 1 else []
-    return Layout(int(f.attrs["image_size"]), joints or [], depth and maps, affordance and maps, fps, several, video)
+    if maps not in MAPS:
+        raise AdlError(f"maps {maps!r}: one of {', '.join(MAPS)}")
+    keep = maps != "none"
+    return Layout(int(f.attrs["image_size"]), joints or [], depth and keep, affordance and keep, fps, several, video,
+                  maps_video=maps == "video")
 
 
 class Export:
@@ -239,11 +250,13 @@ class Export:
                                                           np.zeros((*blank.shape, 3), np.uint8)), 255.0)
         if self.layout.depth:
             di = fr["depth_index"][()] if "depth_index" in fr else np.full(T, -1)
-            images[DEPTH] = (_synced(fr["depth"], di, blank.astype(np.uint16)), 1.0)
+            depth = _synced(fr["depth"], di, blank.astype(np.uint16))
+            images[DEPTH] = ((_grey_rgb(np.round(d / DEPTH_VIDEO_MM)) for d in depth), 1.0) \
+                if self.layout.maps_video else (depth, 1.0)  # video: grey levels of DEPTH_VIDEO_MM; PNG: mm
         if self.layout.affordance:
             maps = _synced(fr["affordance"], fr["affordance_index"][()], blank)
-            images[AFFORDANCE] = (((np.clip(np.nan_to_num(a), 0, 1) * 255).round().astype(np.uint8) for a in maps),
-                                  255.0)
+            grey = ((np.clip(np.nan_to_num(a), 0, 1) * 255).round().astype(np.uint8) for a in maps)
+            images[AFFORDANCE] = (((_grey_rgb(a) for a in grey) if self.layout.maps_video else grey), 255.0)
         cols: dict[str, list] = {}
         ep: dict = {}
         for key, (frames, scale) in images.items():
@@ -347,6 +360,12 @@ def _frames_checked(g: h5py.Group, name: str) -> h5py.Group:
 def _synced(images: h5py.Dataset, index: np.ndarray, blank: np.ndarray) -> Iterator[np.ndarray]:
     """The image synced to each frame (index -1: none, the blank image instead)."""
     return (images[int(i)] if i >= 0 else blank for i in index)
+
+
+def _grey_rgb(image: np.ndarray) -> np.ndarray:
+    """A one-channel map as the RGB frame a video stream takes (clipped to 0-255: depth past 2.55 m saturates)."""
+    grey = np.clip(image, 0, 255).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2)
 
 
 def _counted(frames: Iterable[np.ndarray], moments: Moments, scale: float) -> Iterator[np.ndarray]:

@@ -25,10 +25,15 @@ CRF = 15  # near lossless: decoded frames within about 2 grey levels (mean, 64 p
 GOP = 2
 
 
-def video_feature(size: int, fps: int) -> dict:
-    return {"dtype": "video", "shape": [size, size, 3], "names": ["height", "width", "channels"],
-            "info": {"video.height": size, "video.width": size, "video.codec": CODEC, "video.pix_fmt": PIX_FMT,
-                     "video.is_depth_map": False, "video.fps": fps, "video.channels": 3, "has_audio": False}}
+def video_feature(size: int, fps: int, depth_mm_per_level: int | None = None) -> dict:
+    """A video feature of info.json; depth_mm_per_level: a depth map's, one grey level (in all 3 channels) is this
+    many mm."""
+    info = {"video.height": size, "video.width": size, "video.codec": CODEC, "video.pix_fmt": PIX_FMT,
+            "video.is_depth_map": depth_mm_per_level is not None, "video.fps": fps, "video.channels": 3,
+            "has_audio": False}
+    if depth_mm_per_level:
+        info.update({"unit": "mm", "mm_per_level": depth_mm_per_level})
+    return {"dtype": "video", "shape": [size, size, 3], "names": ["height", "width", "channels"], "info": info}
 
 
 class VideoFiles:
