@@ -2,9 +2,9 @@
 
     python bench/export_peers.py DATA [--peers DIR]
 
-Exports DATA twice (the default: cameras as video, depth and affordance maps as PNG; and --maps none) and runs each
-peer installed in a venv of its own under DIR (bench/doctor_peers.py says how) on both: kalanos grade, deepen grade
-(JSON), lerobot-doctor check (JSON). Prints per peer and export whether it read every episode or what it refused
+Exports DATA three times (the default: cameras as video, depth and affordance maps as PNG; --maps video; --maps none)
+and runs each peer installed in a venv of its own under DIR (bench/doctor_peers.py says how) on each: kalanos grade,
+deepen grade (JSON), lerobot-doctor check (JSON). Prints per peer and export whether it read every episode or what it refused
 with. LeRobot itself: bench/lerobot_check.py.
 """
 
@@ -60,8 +60,9 @@ def main() -> None:
     p.add_argument("--peers", type=Path, default=REPO / "bench" / "peers")
     a = p.parse_args()
     root = Path(tempfile.mkdtemp(prefix="adlpipe-export-peers-"))
-    exports = {"default (video + PNG maps)": root / "video", "--maps none": root / "no_maps"}
-    for out, extra in zip(exports.values(), ([], ["--maps", "none"]), strict=True):
+    exports = {"default (video + PNG maps)": root / "video", "--maps video": root / "video_maps",
+               "--maps none": root / "no_maps"}
+    for out, extra in zip(exports.values(), ([], ["--maps", "video"], ["--maps", "none"]), strict=True):
         subprocess.run([sys.executable, "-m", "adlpipe.export", str(a.data), str(out), *extra], check=True,
                        capture_output=True)
     for name, (run, cli) in PEERS.items():

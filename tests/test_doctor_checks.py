@@ -55,3 +55,27 @@ def test_each_planted_defect_is_named_and_no_clean_episode_is_flagged(doctored: 
         assert flag in doctored[bag], (defect, doctored[bag])
     clean = {bag: flags for bag, flags in doctored.items() if bag not in PLANTED}
     assert len(clean) == 4 and not any(clean.values()), clean
+
+
+@pytest.mark.parametrize("frames", [1, 2])
+def test_an_episode_of_one_or_two_frames_is_doctored_and_exported_as_video(mcap_bags: list[Path], tmp_path: Path,
+                                                                         frames: int) -> None:
+    """A recording stopped after its first camera frame(s), written with the real writer: ingest keeps it, the
+    doctor reports it (R5: a traceback was reported on 0-1-frame episodes) and the video export names no temp file."""
+    from plant_defects import IMAGE, read, write
+
+    messages = list(read(mcap_bags[0]))
+    images = sorted(m[2] for m in messages if m[0] == IMAGE)
+    end = images[frames - 1] + (images[frames] - images[frames - 1]) // 2  # the tf past the last frame is kept
+    write(tmp_path / "short.mcap", [m for m in messages if m[2] <= end or m[0] in ("/adl/task", "/tf_static",
+                                                                                    "/adl/affordance")])
+    data = tmp_path / "short.h5"
+    run_module("ingest", tmp_path / "short.mcap", "-o", data, "--size", "64", check=True)
+    doctor = run_module("doctor", data, "--json", tmp_path / "doctor.json")
+    assert doctor.returncode == 0, doctor.stderr
+    (figures,) = json.loads((tmp_path / "doctor.json").read_text())["episodes"].values()
+    assert figures["frames"] == frames
+    export = run_module("export", data, tmp_path / "lerobot")
+    assert export.returncode == 0 and "tmp" not in export.stderr, export.stderr
+    info = json.loads((tmp_path / "lerobot" / "meta" / "info.json").read_text())
+    assert info["total_frames"] == frames
