@@ -26,10 +26,8 @@ from __future__ import annotations
 
 import argparse
 import errno
-import multiprocessing
 import os
 import shutil
-import signal
 import stat
 import sys
 from collections.abc import Iterable
@@ -50,6 +48,7 @@ from .dataset.from_bag import extract_episode, sha256_of
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, one_line, run_cli
 from .lock import exclusive
+from .workers import stoppable_pool
 
 
 def check_bag_path(bag: Path) -> None:
@@ -63,13 +62,6 @@ def check_bag_path(bag: Path) -> None:
         raise AdlError(f"{bag}: cannot read ({exc.strerror})") from None
     if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
         raise AdlError(f"{bag}: not a regular file or folder (a pipe, device or socket); give a bag file")
-
-
-def _pool_worker_init() -> None:
-    """Pool workers leave Ctrl-C to the parent, which stops them (a worker dying mid-result would hang the pool),
-    and report a full disk once."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _report_full_disk_once()
 
 
 def _report_full_disk_once() -> None:
@@ -258,23 +250,8 @@ def _run_jobs(jobs: list[tuple], workers: int, progress: bool) -> list[tuple]:
            "total": len(jobs)}
     if workers <= 1 or len(jobs) <= 1:
         return [_worker(j) for j in tqdm(jobs, **bar)]
-    # multiprocessing's Pool, not concurrent.futures: its workers can be stopped at once on Ctrl-C, where an
-    # executor's management thread trips over the futures it cancelled (InvalidStateError, a hang). Ctrl-C is
-    # held back while the workers fork, so it never meets a half-built pool.
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        pool = multiprocessing.get_context("fork").Pool(workers, initializer=_pool_worker_init)
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
-    try:
-        results = list(tqdm(pool.imap(_worker, jobs), **bar))
-        pool.close()
-        return results
-    except BaseException:
-        pool.terminate()  # the workers ignore SIGINT, so none dies holding the task queue's lock
-        raise
-    finally:
-        pool.join()
+    with stoppable_pool(workers, initializer=_report_full_disk_once) as pool:
+        return list(tqdm(pool.imap(_worker, jobs), **bar))
 
 
 def check_free_space(output: Path, bags: Iterable[Path]) -> None:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +32,7 @@ from .cli import SEED, Parser, float_range, int_range
 from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 from .geometry import matrix_to_quat
+from .workers import stoppable_pool
 
 BASE_TIME_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z; episode k starts k*100 s later (deterministic bags)
 CAMERA_FRAME = "camera_color_optical_frame"
@@ -117,13 +118,22 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
         raise
 
 
+def _bag_path(worker: object, job: tuple) -> Path:
+    """The bag a job of `worker` writes."""
+    if worker is _record_seeded_one:
+        world, idx, out, _seed, fmt = job[:5]
+        return Path(out) / f"{SEEDED_WORLDS[world][0]}_{idx:04d}{FORMATS[fmt]}"
+    task, idx, out, _seed, fmt = job[:5]
+    return Path(out) / f"{task.replace(' ', '_')}_{idx:04d}{FORMATS[fmt]}"
+
+
 def _record_one(job: tuple) -> tuple[str, int, bool]:
     from .sim.episode import seeded_demo
     from .sim.tasks import TASK_NAMES
 
     task, idx, out, seed, fmt, image_format, depth_format, size, camera_hz, moving_person = job
     st = seeded_demo(task, seed, idx, size, camera_hz, moving_person)
-    path = Path(out) / f"{task.replace(' ', '_')}_{idx:04d}{FORMATS[fmt]}"
+    path = _bag_path(_record_one, job)
     write_episode_bag(st, path, fmt, image_format, depth_format, episode_index=TASK_NAMES.index(task) * 10000 + idx)
     return str(path), st.attempts, st.success
 
@@ -141,7 +151,7 @@ def _record_seeded_one(job: tuple) -> tuple[str, int, bool]:
     world, idx, out, seed, fmt, image_format, size = job
     stem, topics = SEEDED_WORLDS[world]
     st = _seeded_world(world).record(seed + idx, size)
-    path = Path(out) / f"{stem}_{idx:04d}{FORMATS[fmt]}"
+    path = _bag_path(_record_seeded_one, job)
     write_episode_bag(st, path, fmt, image_format, "32FC1", episode_index=idx, topics=topics)
     return str(path), 1, st.success
 
@@ -182,6 +192,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+def _record_all(worker: Callable[[tuple], tuple[str, int, bool]], jobs: list[tuple], workers: int) -> int:
+    """Run the jobs (in a pool of `workers` when there are several); how many demonstrations missed their goal."""
+    bar = {"total": len(jobs), "desc": "record", "unit": "ep", "file": sys.stderr, "disable": None}
+    if workers <= 1 or len(jobs) <= 1:
+        return sum(not ok for _, _, ok in tqdm(map(worker, jobs), **bar))
+    with stoppable_pool(workers) as pool:
+        return sum(not ok for _, _, ok in tqdm(pool.imap(worker, jobs), **bar))
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     refuse_pipeline_outputs([args.out], args.force)
@@ -194,11 +213,14 @@ def main(argv: list[str] | None = None) -> int:
         worker = _record_one
         jobs = [(t, i, str(args.out), args.seed, args.format, args.image_format, args.depth_format, args.size,
                  args.camera_hz, args.moving_person) for t in args.tasks for i in range(args.episodes)]
-    failed = 0
-    with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
-        for _path, _attempts, ok in tqdm(pool.map(worker, jobs), total=len(jobs), desc="record",
-                                         unit="ep", file=sys.stderr, disable=None):
-            failed += not ok
+    try:
+        failed = _record_all(worker, jobs, args.workers)
+    except BaseException:  # a terminated worker's bag was half written under its temp name (.<bag>.tmp<pid>)
+        for job in jobs:
+            bag = _bag_path(worker, job)
+            for tmp in bag.parent.glob(f".{bag.name}.tmp*"):
+                BagWriter.remove(tmp)
+        raise
     print(f"recorded {len(jobs)} episodes to {args.out} ({failed} without a successful demo)")
     return 0
 

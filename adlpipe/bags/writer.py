@@ -27,7 +27,7 @@ class BagWriter:
         self.path, self.fmt = Path(path), fmt
         self.msgs = MessageFactory(1 if fmt == "bag" else 2)
         self.tmp = temp_name(self.path)
-        self._remove(self.tmp)
+        self.remove(self.tmp)
         self._channels: dict[str, object] = {}
         if fmt == "mcap":
             self._file = open(self.tmp, "wb")
@@ -43,7 +43,8 @@ class BagWriter:
             self._w.open()
 
     @staticmethod
-    def _remove(p: Path) -> None:
+    def remove(p: Path) -> None:
+        """A bag file, or a rosbag2 folder."""
         if p.is_dir():
             shutil.rmtree(p)
         elif p.exists():
@@ -88,7 +89,7 @@ class BagWriter:
                 inner.rename(self.tmp / f"{self.path.name}.db3")
                 meta = self.tmp / "metadata.yaml"
                 meta.write_text(meta.read_text().replace(f"{self.tmp.name}.db3", f"{self.path.name}.db3"))
-        self._remove(self.path)
+        self.remove(self.path)
         os.replace(self.tmp, self.path)
         return self.path
 
@@ -96,7 +97,7 @@ class BagWriter:
         try:
             self.close_quietly()
         finally:
-            self._remove(self.tmp)
+            self.remove(self.tmp)
 
     def close_quietly(self) -> None:
         try:
