@@ -41,6 +41,9 @@ def bag_kind(path: Path) -> str:
         if not (path.parent / "metadata.yaml").exists():
             raise AdlError(f"{path}: a .db3 file needs the metadata.yaml of its rosbag2 folder beside it")
         return "rosbag2"
+    if path.suffix in (".zstd", ".lz4") and Path(path.stem).suffix in (".mcap", ".db3"):  # rosbag2's file mode
+        raise AdlError(f"{path}: a compressed rosbag2 split (the whole file {path.suffix[1:]}-compressed); give its "
+                       "folder, with metadata.yaml, instead of the bare file")
     raise AdlError(f"{path}: unknown bag format (expected .mcap, .bag, .db3 or a rosbag2 folder)")
 
 
