@@ -6,6 +6,7 @@ import json
 import shutil
 from pathlib import Path
 
+import pytest
 from conftest import REPO, one_line_error, run_module
 
 RUN = REPO / "results" / "default"
@@ -134,10 +135,12 @@ def test_images_with_zero_stamps_are_one_line_naming_the_topic(tmp_path: Path) -
     assert "after the first image" not in line and not (tmp_path / "adl.h5").exists()
 
 
-def test_a_truncated_copy_under_hdf5_ext_prefix_is_blamed_not_the_datasets_file(ingested: Path,
-                                                                                tmp_path: Path) -> None:
-    """HDF5_EXT_PREFIX sends HDF5 to a truncated copy of an episode file: the refusal names the variable and the
-    dataset's own (healthy) file as the one to read, and without the variable the same dataset reads."""
+@pytest.mark.parametrize("there", ["truncated copy", "folder"])
+def test_a_truncated_copy_under_hdf5_ext_prefix_is_blamed_not_the_datasets_file(ingested: Path, tmp_path: Path,
+                                                                                there: str) -> None:
+    """HDF5_EXT_PREFIX sends HDF5 to a truncated copy of an episode file, or to a folder of its name: the refusal
+    names the variable and the dataset's own (healthy) file as the one to read (a folder blamed the dataset's file
+    before), and without the variable the same dataset reads."""
     import os
     import subprocess
     import sys
@@ -147,7 +150,10 @@ def test_a_truncated_copy_under_hdf5_ext_prefix_is_blamed_not_the_datasets_file(
     for episode in (data.parent / "adl.shards").rglob("*.h5"):
         copy = prefix / episode.relative_to(data.parent)
         copy.parent.mkdir(parents=True, exist_ok=True)
-        copy.write_bytes(episode.read_bytes()[:2000])
+        if there == "folder":
+            copy.mkdir()
+        else:
+            copy.write_bytes(episode.read_bytes()[:2000])
     env = {**os.environ, "HDF5_EXT_PREFIX": str(prefix)}
     proc = subprocess.run([sys.executable, "-m", "adlpipe.split", data, "-o", tmp_path / "split.json"],
                           capture_output=True, text=True, env=env, cwd=tmp_path)

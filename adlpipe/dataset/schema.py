@@ -233,9 +233,10 @@ def check_episode_file(path: Path, f: h5py.File, name: str, file: Path) -> None:
         raise_if_interrupted(exc)
         prefix = os.environ.get("HDF5_EXT_PREFIX")
         link = f[EPISODES].get(name, getlink=True)
-        if prefix and any((Path(p) / getattr(link, "filename", "")).is_file() for p in prefix.split(os.pathsep)):
-            # HDF5 looked for the episode's file under this prefix first: the file it could not read is not ours
-            raise AdlError(f"{path}: episode {name}: HDF5_EXT_PREFIX={prefix} sends HDF5 to a copy of its file "
+        if prefix and any((Path(p) / getattr(link, "filename", "")).exists() for p in prefix.split(os.pathsep)):
+            # HDF5 looked for the episode's file under this prefix first: what it could not read (a file, a
+            # folder) is not ours
+            raise AdlError(f"{path}: episode {name}: HDF5_EXT_PREFIX={prefix} sends HDF5 to its file's name "
                            f"there, which cannot be read ({one_line(exc)}); unset HDF5_EXT_PREFIX to read {file}") \
                 from None
         raise AdlError(f"{path}: episode {name}: its file {file} cannot be read ({one_line(exc)}); re-ingest its bag "
