@@ -4,6 +4,7 @@ episode files, and a bag beside its episode in Rerun; on bags written with the r
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -190,7 +191,25 @@ def test_a_failed_edit_leaves_no_output(curated: dict, tmp_path: Path, monkeypat
     out = tmp_path / "n.h5"
     with pytest.raises(OSError):
         edit_module.edit(curated["data"], out, edit_module.Edits(retask={curated["name"]["idle"]: "x"}))
-    assert not out.exists() and not [p for p in (tmp_path / "n.shards").rglob("*") if p.is_file()]
+    assert not out.exists() and not (tmp_path / "n.shards").exists()  # no empty folder either (R5)
+
+
+SHM = Path("/dev/shm")
+
+
+@pytest.mark.skipif(not SHM.is_dir() or not os.access(SHM, os.W_OK), reason="needs a writable /dev/shm")
+def test_an_edit_onto_another_file_system_is_one_line_and_leaves_no_folder(curated: dict, tmp_path: Path) -> None:
+    """Hard links cannot cross file systems: one line saying so, and neither the index nor an empty .shards folder
+    left there (an empty one was left before)."""
+    if SHM.stat().st_dev == curated["data"].stat().st_dev:
+        pytest.skip("/dev/shm is on the dataset's file system here")
+    out = SHM / f"adlpipe-test-{os.getpid()}" / "n.h5"
+    try:
+        line = one_line_error(run_module("edit", curated["data"], "-o", out))
+        assert "hard link" in line and "same file system" in line
+        assert not out.exists() and not out.with_name("n.shards").exists()
+    finally:
+        shutil.rmtree(out.parent, ignore_errors=True)
 
 
 def test_inspect_shows_the_bag_beside_its_episode(curated: dict, tmp_path: Path) -> None:

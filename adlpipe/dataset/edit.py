@@ -104,7 +104,9 @@ def _first_duplicate(names: list[str]) -> str | None:
 def write(out: Path, rows: list[Row], attrs: tuple[int, int]) -> None:
     """The new index and its run folder (hard links, and new files for the renamed or re-tasked episodes)."""
     shards.remove_unreferenced(out)
+    made_root = not shards.shards_dir(out).exists()
     run, tmp = shards.new_run(out)
+    committed = False
     try:
         by_file: dict[Path, list[Row]] = {}
         for r in rows:
@@ -118,9 +120,12 @@ def write(out: Path, rows: list[Row], attrs: tuple[int, int]) -> None:
                 _rewrite(source, target, file_rows)
             catalog += [{"name": r.name, "key": r.key, "task": r.task, "file": target.name} for r in file_rows]
         shards.commit(out, run, tmp, catalog, *attrs)
+        committed = True
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+        if made_root and not committed:  # a refused edit (another file system, a Ctrl-C) leaves no empty folder
+            shutil.rmtree(shards.shards_dir(out), ignore_errors=True)
 
 
 def _link(source: Path, target: Path, out: Path) -> None:
