@@ -71,16 +71,19 @@ def _report_full_disk_once() -> None:
     def full_disk(exc: BaseException | None) -> bool:
         return isinstance(exc, OSError) and exc.errno == errno.ENOSPC
 
+    # anything else goes on to the hooks set before (run_cli's, which keeps a Ctrl-C in a finaliser quiet)
+    previous_unraisable, previous_excepthook = sys.unraisablehook, sys.excepthook
+
     def unraisable(u: sys.UnraisableHookArgs) -> None:
         # h5py's destructors also report "Can't decrement id ref count" once HDF5 failed to write (seen about one
         # run in ten when the disk fills in a pool worker): the same full disk, said again
         after_failure = isinstance(u.exc_value, RuntimeError) and "ref count" in str(u.exc_value)
         if not full_disk(u.exc_value) and not (after_failure and "h5py" in str(u.object)):
-            sys.__unraisablehook__(u)
+            previous_unraisable(u)
 
     def excepthook(kind: type[BaseException], exc: BaseException, tb: object) -> None:
         if not full_disk(exc):
-            sys.__excepthook__(kind, exc, tb)
+            previous_excepthook(kind, exc, tb)
 
     sys.unraisablehook, sys.excepthook = unraisable, excepthook
 

@@ -207,3 +207,33 @@ def test_a_ctrl_c_swallowed_by_a_finaliser_still_stops_the_stage_before_it_commi
     assert KeyboardInterrupt in dropped  # Python dropped the interrupt where it landed (other garbage may go too) ...
     assert rc == 130 and out.read_text() == "old"  # ... and the stage stopped before replacing the output
     assert "interrupted; no output was replaced" in err.getvalue()
+
+
+def test_ingests_full_disk_hooks_pass_everything_else_to_the_hooks_before_them() -> None:
+    """ingest quiets h5py's destructor noise after a full disk; anything else (a Ctrl-C in a finaliser) goes on to
+    the hook set before it (run_cli's quiet one), not to Python's default, which printed the 5-8 line trace."""
+    import errno
+    import sys
+
+    from adlpipe import ingest
+
+    seen: list[type] = []
+    saved = sys.unraisablehook, sys.excepthook
+    sys.unraisablehook = lambda u: seen.append(u.exc_type)
+    sys.excepthook = lambda kind, exc, tb: seen.append(kind)
+    try:
+        ingest._report_full_disk_once()
+
+        def raise_in_finaliser(exc: BaseException) -> None:
+            class Dying:
+                def __del__(self) -> None:
+                    raise exc
+            Dying()
+
+        raise_in_finaliser(OSError(errno.ENOSPC, "No space left on device"))
+        raise_in_finaliser(KeyboardInterrupt())
+        sys.excepthook(OSError, OSError(errno.ENOSPC, "full"), None)
+        sys.excepthook(ValueError, ValueError("other"), None)
+    finally:
+        sys.unraisablehook, sys.excepthook = saved
+    assert seen == [KeyboardInterrupt, ValueError]
