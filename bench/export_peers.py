@@ -4,8 +4,8 @@
 
 Exports DATA three times (the default: cameras as video, depth and affordance maps as PNG; --maps video; --maps none)
 and runs each peer installed in a venv of its own under DIR (bench/doctor_peers.py says how) on each: kalanos grade,
-deepen grade (JSON), lerobot-doctor check (JSON). Prints per peer and export whether it read every episode or what it refused
-with. LeRobot itself: bench/lerobot_check.py.
+deepen grade (JSON), lerobot-doctor check (JSON). Prints per peer and export whether it read every episode or what
+it refused with. LeRobot itself: bench/lerobot_check.py.
 """
 
 from __future__ import annotations
