@@ -63,6 +63,7 @@ CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_l
                      "metrics/replay_moving_closed_loop_details.json": "replay_moving_closed_loop_details.json",
                      "metrics/replay_moving_open_details.json": "replay_moving_open_details.json",
                      "metrics/replay_ensemble_details.json": "replay_ensemble_details.json",
+                     "metrics/replay_moving_ensemble_details.json": "replay_moving_ensemble_details.json",
                      "reports/report.md": "report.md", "reports/history.md": "history.md",
                      # the open-loop reference: the default pipeline's replay of the same scenes in that run
                      "../../metrics/replay_details.json": "replay_open_details.json"}
