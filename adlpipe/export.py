@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split-part", choices=["train", "test"], help="export only this part of the split")
     p.add_argument("--images", choices=["video", "png"], default="video",
                    help="the cameras as MP4 video, as LeRobot records them (default), or as lossless PNG images "
-                        "in the data files; depth and affordance maps are always PNG")
+                        "in the data files (the depth and affordance maps: --maps)")
     p.add_argument("--maps", choices=["png", "video", "none"], default="png",
                    help="the depth and affordance maps: lossless PNG images in the data files (default), MP4 "
                         "video beside the cameras' (8-bit grey, depth 2 cm a level: lossy; for readers of video "

@@ -118,22 +118,18 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
         raise
 
 
-def _bag_path(worker: object, job: tuple) -> Path:
-    """The bag a job of `worker` writes."""
-    if worker is _record_seeded_one:
-        world, idx, out, _seed, fmt = job[:5]
-        return Path(out) / f"{SEEDED_WORLDS[world][0]}_{idx:04d}{FORMATS[fmt]}"
-    task, idx, out, _seed, fmt = job[:5]
-    return Path(out) / f"{task.replace(' ', '_')}_{idx:04d}{FORMATS[fmt]}"
+def _bag_path(out: Path, stem: str, idx: int, fmt: str) -> Path:
+    """The bag of episode `idx` named by its task or world (the job carries it: the parent removes what a stopped
+    worker left under its temp name)."""
+    return out / f"{stem.replace(' ', '_')}_{idx:04d}{FORMATS[fmt]}"
 
 
 def _record_one(job: tuple) -> tuple[str, int, bool]:
     from .sim.episode import seeded_demo
     from .sim.tasks import TASK_NAMES
 
-    task, idx, out, seed, fmt, image_format, depth_format, size, camera_hz, moving_person = job
+    path, task, idx, seed, fmt, image_format, depth_format, size, camera_hz, moving_person = job
     st = seeded_demo(task, seed, idx, size, camera_hz, moving_person)
-    path = _bag_path(_record_one, job)
     write_episode_bag(st, path, fmt, image_format, depth_format, episode_index=TASK_NAMES.index(task) * 10000 + idx)
     return str(path), st.attempts, st.success
 
@@ -148,11 +144,9 @@ def _seeded_world(name: str) -> object:
 def _record_seeded_one(job: tuple) -> tuple[str, int, bool]:
     """Push-T or Franka Kitchen: the demonstration from initial condition `seed` (their demonstrators are
     deterministic: no retries; a demonstration that misses its goal is recorded and counted)."""
-    world, idx, out, seed, fmt, image_format, size = job
-    stem, topics = SEEDED_WORLDS[world]
+    path, world, idx, seed, fmt, image_format, size = job
     st = _seeded_world(world).record(seed + idx, size)
-    path = _bag_path(_record_seeded_one, job)
-    write_episode_bag(st, path, fmt, image_format, "32FC1", episode_index=idx, topics=topics)
+    write_episode_bag(st, path, fmt, image_format, "32FC1", episode_index=idx, topics=SEEDED_WORLDS[world][1])
     return str(path), 1, st.success
 
 
@@ -207,17 +201,18 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     if args.world in SEEDED_WORLDS:
         _seeded_world(args.world).make_env().close()  # the optional extra's absence is one line here, not per worker
-        worker, jobs = _record_seeded_one, [(args.world, i, str(args.out), args.seed, args.format, args.image_format,
-                                             args.size) for i in range(args.episodes)]
+        stem = SEEDED_WORLDS[args.world][0]
+        worker, jobs = _record_seeded_one, [(_bag_path(args.out, stem, i, args.format), args.world, i, args.seed,
+                                             args.format, args.image_format, args.size) for i in range(args.episodes)]
     else:
         worker = _record_one
-        jobs = [(t, i, str(args.out), args.seed, args.format, args.image_format, args.depth_format, args.size,
-                 args.camera_hz, args.moving_person) for t in args.tasks for i in range(args.episodes)]
+        jobs = [(_bag_path(args.out, t, i, args.format), t, i, args.seed, args.format, args.image_format,
+                 args.depth_format, args.size, args.camera_hz, args.moving_person)
+                for t in args.tasks for i in range(args.episodes)]
     try:
         failed = _record_all(worker, jobs, args.workers)
     except BaseException:  # a terminated worker's bag was half written under its temp name (.<bag>.tmp<pid>)
-        for job in jobs:
-            bag = _bag_path(worker, job)
+        for bag, *_ in jobs:
             for tmp in bag.parent.glob(f".{bag.name}.tmp*"):
                 BagWriter.remove(tmp)
         raise

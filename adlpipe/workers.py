@@ -1,11 +1,12 @@
 """A process pool that stops at once on Ctrl-C (record, ingest).
 
-multiprocessing's Pool, not concurrent.futures: an executor, interrupted, waits for every job it was given (its
-shutdown does not cancel them), so `record --world kitchen` went on recording for up to a minute after Ctrl-C and
-wrote the bags of jobs that had not started; cancelling its futures trips its management thread (InvalidStateError,
-a hang). Here the workers ignore SIGINT (Ctrl-C reaches the whole process group; a worker dying mid-result would hang
-the pool) and the parent terminates them. Ctrl-C is held back while the workers fork, so it never meets a half-built
-pool. What a terminated worker was writing is the caller's to remove (a writer's temp file: see record).
+multiprocessing's Pool, not concurrent.futures: an interrupted executor cancels only the jobs it has not yet handed
+to its workers and waits for the rest (those running and those queued behind them), so `record --world kitchen`
+went on recording for up to a minute after Ctrl-C and wrote bags after it; cancelling its futures trips its
+management thread (InvalidStateError, a hang). Here the workers ignore SIGINT (Ctrl-C reaches the whole process
+group; a worker dying mid-result would hang the pool) and the parent terminates them. Ctrl-C is held back while the
+workers fork, so it never meets a half-built pool. What a terminated worker was writing is the caller's to remove
+(a writer's temp file: see record).
 """
 
 from __future__ import annotations

@@ -45,8 +45,7 @@ def stale_training_stages(repo: Repo, wanted: tuple[str, ...] = ("train",)) -> l
 
 def run(stage, logs: Path) -> tuple[str, int, float]:  # noqa: ANN001 - a dvc Stage
     t0 = time.time()
-    for out in stage.outs:  # as dvc repro does: a stale stage's outputs go before its command runs (train refuses
-        # to replace a stage's output by hand)
+    for out in stage.outs:  # as dvc repro does: a stale stage's outputs go before its command runs
         path = Path(out.fs_path)
         shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
     with open(logs / f"{stage.name.replace('@', '_')}.log", "w") as log:

@@ -163,6 +163,8 @@ class Layout:
 
 def plan(f: h5py.File, names: list[str], video: bool = True, maps: str = "png") -> Layout:
     """Decide the features from the episodes' small arrays; every episode must have the same joints."""
+    if maps not in MAPS:
+        raise AdlError(f"maps {maps!r}: one of {', '.join(MAPS)}")
     joints: list[str] | None = None
     cameras: list[str] | None = None
     depth = affordance = False
@@ -189,8 +191,6 @@ def plan(f: h5py.File, names: list[str], video: bool = True, maps: str = "png") 
             rates.append(1.0 / float(np.median(np.diff(t))))
     fps = max(1, int(round(float(np.median(rates))))) if rates else 1
     several = cameras if cameras and len(cameras) > 1 else []
-    if maps not in MAPS:
-        raise AdlError(f"maps {maps!r}: one of {', '.join(MAPS)}")
     keep = maps != "none"
     return Layout(int(f.attrs["image_size"]), joints or [], depth and keep, affordance and keep, fps, several, video,
                   maps_video=maps == "video")
@@ -363,7 +363,8 @@ def _synced(images: h5py.Dataset, index: np.ndarray, blank: np.ndarray) -> Itera
 
 
 def _grey_rgb(image: np.ndarray) -> np.ndarray:
-    """A one-channel map as the RGB frame a video stream takes (clipped to 0-255: depth past 2.55 m saturates)."""
+    """A one-channel map as the RGB frame a video stream takes (clipped to 0-255: depth past 255 levels of
+    DEPTH_VIDEO_MM saturates)."""
     grey = np.clip(image, 0, 255).astype(np.uint8)
     return np.repeat(grey[..., None], 3, axis=2)
 
