@@ -41,6 +41,7 @@ PUSHT_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint=None, ee_fram
                         action="/pusht/action")
 KITCHEN_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint="panda0_finger_joint1", ee_frame="end_effector",
                           state="/kitchen/state", action="/kitchen/action")
+REFERENCE_NAMES = ["tcp_x", "tcp_y", "tcp_z"]
 SEEDED_WORLDS = {"pusht": ("push_the_T", PUSHT_TOPICS), "kitchen": ("franka_kitchen", KITCHEN_TOPICS)}  # bag stem
 
 
@@ -94,6 +95,8 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
             events.append((tn, 7, topics.tf, M.TF,
                            lambda tn=tn, p=p, q=q: f.tf(tn, [(topics.base_frame, topics.ee_frame, p, q)])))
         extra = [(topic, names, stream) for topic, (names, stream) in st.extra_states.items()]
+        if topics.reference and st.reference:  # a disturbed demonstrator's own path (record --recoveries)
+            extra.append((topics.reference, REFERENCE_NAMES, st.reference))
         for topic, names, stream in ((topics.state, st.state_names, st.states),
                                      (topics.action, st.action_names, st.actions), *extra):
             for t, values in stream if topic else []:
@@ -128,8 +131,8 @@ def _record_one(job: tuple) -> tuple[str, int, bool]:
     from .sim.episode import seeded_demo
     from .sim.tasks import TASK_NAMES
 
-    path, task, idx, seed, fmt, image_format, depth_format, size, camera_hz, moving_person = job
-    st = seeded_demo(task, seed, idx, size, camera_hz, moving_person)
+    path, task, idx, seed, fmt, image_format, depth_format, size, camera_hz, moving_person, recoveries = job
+    st = seeded_demo(task, seed, idx, size, camera_hz, moving_person, recoveries)
     write_episode_bag(st, path, fmt, image_format, depth_format, episode_index=TASK_NAMES.index(task) * 10000 + idx)
     return str(path), st.attempts, st.success
 
@@ -173,6 +176,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--moving-person", action="store_true",
                    help="adl: the person moves during each episode (the head turns and nods, the forearm lifts; "
                    "adlpipe.sim.person) and the demonstrator follows them; the same seeded scenes otherwise")
+    p.add_argument("--recoveries", action="store_true",
+                   help="adl: demonstrations with recoveries (DART-style): the demonstrator's command is pushed 2-5 "
+                   "cm off its path or held back now and then and returns over 0.8 s (adlpipe.sim.disturbances); "
+                   "its undisturbed path goes on the topic map's reference topic, from which train --target "
+                   "recovery makes labels that never show a disturbance. The same seeded scenes otherwise")
     p.add_argument("--workers", type=int_range(1, 256), default=2)
     p.add_force()
     args = p.parse_args(argv)
@@ -181,6 +189,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         raise AdlError(f"unknown task(s) {bad}; tasks are {TASK_NAMES}")
     if args.moving_person and args.world != "adl":
         raise AdlError(f"--moving-person: the {args.world} world has no person; it moves in the ADL world only")
+    if args.recoveries and args.world != "adl":
+        raise AdlError(f"--recoveries: the {args.world} world's demonstrator is not adlpipe's; ADL world only")
     if args.episodes < 1 or args.size < 16:
         raise AdlError("--episodes must be >= 1 and --size >= 16")
     return args
@@ -207,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         worker = _record_one
         jobs = [(_bag_path(args.out, t, i, args.format), t, i, args.seed, args.format, args.image_format,
-                 args.depth_format, args.size, args.camera_hz, args.moving_person)
+                 args.depth_format, args.size, args.camera_hz, args.moving_person, args.recoveries)
                 for t in args.tasks for i in range(args.episodes)]
     try:
         failed = _record_all(worker, jobs, args.workers)

@@ -120,9 +120,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--per-frame", action="store_true",
                    help="each observation frame through the shared image encoder, features concatenated (Diffusion "
                    "Policy); default: the frames stacked as channels into one encoder pass")
-    p.add_argument("--target", choices=["command", "ee", "action"], default="command",
+    p.add_argument("--target", choices=["command", "recovery", "ee", "action"], default="command",
                    help="closed loop: command (the commanded end effector's waypoints relative to the command now: "
-                   "the action stream's x, y, z; default), ee (the measured end effector's, relative to where it "
+                   "the action stream's x, y, z; default), recovery (the same anchor; where a demonstrator was "
+                   "disturbed (record --recoveries), the plan it follows back onto its reference path: the "
+                   "topic map's reference stream), ee (the measured end effector's, relative to where it "
                    "is: for bags without a command topic) or action (the bags' action stream per frame, absolute, "
                    "with their state stream as the state input: Push-T, joint-space policies)")
     add_device_args(p)

@@ -26,6 +26,9 @@ class TopicMap:
     state: str | None = None
     action: str | None = "/arm/tcp_command"
     task: str | None = "/adl/task"  # std_msgs/String; optional: --task names it for bags without one
+    # The demonstrator's undisturbed tcp path beside a disturbed command (x, y, z as the action's first three;
+    # `record --recoveries`): what `train --target recovery` makes its labels from. Optional.
+    reference: str | None = "/adl/demo_reference"
     tf: str = "/tf"
     tf_static: str = "/tf_static"
     base_frame: str = "base_link"
@@ -119,7 +122,7 @@ class TopicMap:
 
     def optional_topics(self) -> list[str]:
         return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static, self.state,
-                            self.action, *(c.depth for c in self.extra_cameras)) if t]
+                            self.action, self.reference, *(c.depth for c in self.extra_cameras)) if t]
 
 
 PRIMARY_CAMERA = "camera"

@@ -19,6 +19,7 @@ from torch.utils.data import Dataset
 
 from ..camera import PINHOLE, Lens, project, read_lens
 from ..errors import AdlError
+from ..recovery import recovering_plan
 from . import schema
 from .frames import metres_from_mm
 
@@ -74,12 +75,18 @@ def command_series(g: h5py.Group, where: str) -> tuple[np.ndarray, np.ndarray]:
 
 def relative_waypoints(t_now: np.ndarray, now: np.ndarray, series_t: np.ndarray, series_p: np.ndarray,
                        horizon: int, rate_hz: float, K: np.ndarray, T: np.ndarray, lens: Lens = PINHOLE,
-                       size: int | None = None) -> np.ndarray:
+                       size: int | None = None,
+                       reference: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(F, horizon, 5): the positions of a series (the commanded or the measured end effector) at t_now + 1/rate ..
     t_now + horizon/rate, the last one held after the end, relative to `now` (F, 3): pixels (u, v) from its
-    projection through the camera's lens, metres (x, y, z). The closed-loop policies' target format."""
+    projection through the camera's lens, metres (x, y, z). The closed-loop policies' target format. reference
+    (stamps, positions) of a disturbed demonstrator's own path: instead of the series, the plan it would follow
+    back onto that path from `now` (adlpipe.recovery)."""
     future = np.asarray(t_now, float)[:, None] + np.arange(1, horizon + 1)[None] / rate_hz
-    xyz = np.stack([np.interp(future, series_t, series_p[:, d]) for d in range(3)], -1)  # (F, Tp, 3)
+    if reference is not None:
+        xyz = recovering_plan(t_now, now, reference[0], reference[1], future)
+    else:
+        xyz = np.stack([np.interp(future, series_t, series_p[:, d]) for d in range(3)], -1)  # (F, Tp, 3)
     now = np.asarray(now, float)
     wh = (size, size) if size else None  # the stored images' size: the lens holds inside them
     uv = (project(xyz.reshape(-1, 3), K, T, lens, wh).reshape(*xyz.shape[:2], 2)
@@ -91,11 +98,29 @@ def anchor_series(g: h5py.Group, target: str, where: str) -> tuple[np.ndarray, n
     """(series stamps, series positions, the anchor at each frame (T, 3)) of a closed-loop target: "command" the
     commanded end effector, relative to the command at the frame; "ee" the measured one, relative to the measured
     position at the frame."""
-    if target == "command":
+    if target in ("command", "recovery"):
         ct, cmd = command_series(g, where)
         t = g["frames/t"][()]
         return ct, cmd, np.stack([np.interp(t, ct, cmd[:, d]) for d in range(3)], 1)
     return g["series/ee_t"][()], g["series/ee_pos"][()], g["frames/ee_pos"][()].astype(float)
+
+
+def reference_series(g: h5py.Group, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps, positions (M, 3)) of the path a disturbed demonstrator returns to (record --recoveries): its
+    reference stream; an undisturbed demonstration's reference is its own command."""
+    fr = g["frames"]
+    if "reference_stream" not in fr:
+        return command_series(g, where)
+    t, ref = fr["reference_stream_t"][()], fr["reference_stream"][()].astype(float)
+    if ref.ndim != 2 or ref.shape[1] < 3 or not np.isfinite(ref[:, :3]).all():
+        raise AdlError(f"{where}: frames/reference_stream is not a finite (M, 3) path")
+    return t, ref[:, :3]
+
+
+def any_reference(index: str | Path, names: list[str]) -> bool:
+    """Does any of the episodes carry a disturbed demonstrator's reference stream?"""
+    files = _EpisodeFiles(str(index), list(names))
+    return any("reference_stream" in files.group(n)["frames"] for n in names)
 
 
 def compute_window_stats(index: str | Path, names: list[str], windows: Windows) -> dict[str, list[float]]:
@@ -107,10 +132,12 @@ def compute_window_stats(index: str | Path, names: list[str], windows: Windows) 
     slo, shi = np.full(STATE_DIM, np.inf), np.full(STATE_DIM, -np.inf)
     for n in names:
         g = files.group(n)
-        series_t, series_p, now = anchor_series(g, windows.target, f"{files.files[n]}: episode {n}")
+        where = f"{files.files[n]}: episode {n}"
+        series_t, series_p, now = anchor_series(g, windows.target, where)
+        ref = reference_series(g, where) if windows.target == "recovery" else None
         rel = relative_waypoints(g["frames/t"][()], now, series_t, series_p, windows.horizon, windows.rate_hz,
                                  g["K"][()], g["T_base_camera"][()], read_lens(g),
-                                 int(g["rgb"].shape[1])).reshape(-1, ACTION_DIM)
+                                 int(g["rgb"].shape[1]), ref).reshape(-1, ACTION_DIM)
         state = frame_state(g["frames"])
         lo, hi = np.minimum(lo, rel.min(0)), np.maximum(hi, rel.max(0))
         slo, shi = np.minimum(slo, state.min(0)), np.maximum(shi, state.max(0))
@@ -344,9 +371,10 @@ MAX_CACHED_WINDOWS = 2000  # ~0.3 GB of 8 x 64 x 64 float32 windows at most
 class Windows:
     """The closed-loop sample: observation frames t-n_obs+1..t, and the end effector's next `horizon` waypoints
     at `rate_hz` (t + 1/rate .. t + horizon/rate): target "command" the commanded end effector relative to the
-    command at t (the default: what the arm is told, anchored where the last plan left it), "ee" the measured one
-    relative to the measured position at t; with target "action", the recorded actions of frames t..t+horizon-1
-    instead (absolute, the last repeated after the end) and the recorded state as the state input.
+    command at t (the default: what the arm is told, anchored where the last plan left it), "recovery" the same
+    anchor with the disturbed demonstrator's plan back onto its reference path (record --recoveries), "ee" the
+    measured one relative to the measured position at t; with target "action", the recorded actions of frames
+    t..t+horizon-1 instead (absolute, the last repeated after the end) and the recorded state as the state input.
     images False: a state-only model's sample, whose image part is empty (no image is read)."""
 
     n_obs: int = 2
@@ -442,9 +470,10 @@ class WindowDataset(Dataset):
         if self.w.target == "action":
             m.update(state=fr["state"][()].astype(np.float32), action=fr["action"][()].astype(np.float32))
         else:
-            series_t, series_p, now = anchor_series(g, self.w.target, f"{self.files.files[self.names[e]]}: episode "
-                                                    f"{self.names[e]}")
+            where = f"{self.files.files[self.names[e]]}: episode {self.names[e]}"
+            series_t, series_p, now = anchor_series(g, self.w.target, where)
             m.update(t=fr["t"][()], state=frame_state(fr), series_t=series_t, series_p=series_p, now=now,
+                     ref=reference_series(g, where) if self.w.target == "recovery" else None,
                      K=g["K"][()], T=g["T_base_camera"][()], lens=read_lens(g), size=int(g["rgb"].shape[1]))
         if len(self._metas) >= 256:
             self._metas.pop(next(iter(self._metas)))
@@ -474,7 +503,8 @@ class WindowDataset(Dataset):
             ahead = np.minimum(np.arange(k, k + self.w.horizon), len(m["action"]) - 1)
             return obs, m["state"][idx], m["action"][ahead]
         target = relative_waypoints(m["t"][k:k + 1], m["now"][k:k + 1], m["series_t"], m["series_p"],
-                                    self.w.horizon, self.w.rate_hz, m["K"], m["T"], m["lens"], m["size"])[0]
+                                    self.w.horizon, self.w.rate_hz, m["K"], m["T"], m["lens"], m["size"],
+                                    m["ref"])[0]
         return obs, m["state"][idx], target
 
     def _images(self, g: h5py.Group, m: dict, k: int, idx: list[int]) -> np.ndarray:

@@ -161,6 +161,9 @@ class Streams:
     action_names: list[str] = field(default_factory=list)
     # Further JointState streams of the same kind: topic -> (names, [(t, values)]) (Push-T's keypoint state)
     extra_states: dict[str, tuple[list[str], list[tuple[float, np.ndarray]]]] = field(default_factory=dict)
+    # The demonstrator's undisturbed path (t, tcp) beside a disturbed command (record --recoveries; else empty)
+    reference: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    disturbances: int = 0  # how many disturbances the demonstrator recovered from
 
 
 def camera_intrinsics(model: mujoco.MjModel, width: int, height: int) -> np.ndarray:
@@ -241,12 +244,14 @@ FRESH_INDEX0 = 1_000_000
 
 
 def seeded_demo(task_name: str, seed: int, index: int, size: int, camera_hz: float,
-                moving_person: bool = False) -> Streams:
+                moving_person: bool = False, recoveries: bool = False) -> Streams:
     """The recorder's demonstration `index` of a task: its scene drawn from (seed, task, index, attempt), redrawn
     (up to MAX_ATTEMPTS) while the demonstrator fails. The scene depends on these integers alone, never on the
     host; replay's fresh scenes are the same draw at indices from FRESH_INDEX0. moving_person: the person's motion
     is drawn from a stream of its own, so the scene is the still person's scene with the person moving in it
-    (unless the demonstrator fails with the motion and the scene is redrawn)."""
+    (unless the demonstrator fails with the motion and the scene is redrawn). recoveries: the demonstrator is
+    disturbed and recovers (disturbances drawn from a stream of their own) in the scene the undisturbed recorder
+    keeps; where it fails so, the scene's undisturbed demonstration is recorded instead."""
     from .person import draw_motion
     from .tasks import TASK_NAMES
 
@@ -255,6 +260,11 @@ def seeded_demo(task_name: str, seed: int, index: int, size: int, camera_hz: flo
         rng = np.random.default_rng([seed, ti, index, attempt])
         person = draw_motion(np.random.default_rng([seed, ti, index, attempt, 1])) if moving_person else None
         spec = sample_balanced_scene(task_name, rng, person=person)
+        if recoveries and demo_succeeds(spec):
+            disturb = np.random.default_rng([seed, ti, index, attempt, 2])
+            st = record_demo(task_name, rng, size, size, camera_hz=camera_hz, spec=spec, disturb=disturb)
+            if st.success:
+                break
         st = record_demo(task_name, rng, size, size, camera_hz=camera_hz, spec=spec)
         if st.success:
             break
@@ -264,17 +274,23 @@ def seeded_demo(task_name: str, seed: int, index: int, size: int, camera_hz: flo
 
 def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, height: int = 224,
                 camera_hz: float = 15.0, joint_hz: float = 100.0, tf_hz: float = 50.0,
-                spec: SceneSpec | None = None) -> Streams:
+                spec: SceneSpec | None = None, disturb: np.random.Generator | None = None) -> Streams:
     """Run the scripted demonstrator in a scene (sampled from rng unless given) and record every stream
-    (renders RGB-D at camera_hz)."""
+    (renders RGB-D at camera_hz). disturb: the demonstrator is disturbed (disturbances drawn from it) and recovers,
+    its undisturbed path recorded as the reference."""
+    from .disturbances import disturbed_path, draw_disturbances
+
     task = TASKS[task_name]
     spec = spec or task.sample(rng)
     ctrl, scene = make_scene(spec, width, height)
     m, d = ctrl.m, ctrl.d
-    path, duration = demonstrator_path(task, scene)
+    reference, duration = demonstrator_path(task, scene)
+    events = draw_disturbances(disturb, duration) if disturb is not None else []
+    path = disturbed_path(reference, events) if events else reference
     K = camera_intrinsics(m, width, height)
     T_bc = camera_pose(m, d)
-    st = Streams(task_name, spec, width, height, K, T_bc, duration=duration, action_names=list(COMMAND_NAMES))
+    st = Streams(task_name, spec, width, height, K, T_bc, duration=duration, action_names=list(COMMAND_NAMES),
+                 disturbances=len(events))
     tip_pts = touched_points(task, scene)
     st.affordance = affordance_map(project(tip_pts, K, T_bc), width, height, sigma=0.03 * width)
     camera = RgbdCamera(m, width, height)
@@ -289,6 +305,8 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
         if t + 1e-9 >= next_t["joint"]:
             st.joints.append((t, d.qpos[qadr].copy(), d.qvel[vadr].copy()))
             st.actions.append((t, np.append(ctrl.target, ctrl.gripper_command)))
+            if disturb is not None:
+                st.reference.append((t, reference(min(t, duration))))
             next_t["joint"] += 1.0 / joint_hz
         if t + 1e-9 >= next_t["tf"]:
             q = np.zeros(4)

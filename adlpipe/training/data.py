@@ -17,6 +17,7 @@ from ..dataset.loader import (
     TrajectoryDataset,
     WindowDataset,
     Windows,
+    any_reference,
     check_cameras,
     compute_action_stats,
     compute_stats,
@@ -80,6 +81,9 @@ def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], 
     draws as many windows as there are training episodes ("episodes") or every window once ("all")."""
     if cfg.closed_loop:
         w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz, cfg.target, cfg.use_image)
+        if cfg.target == "recovery" and not any_reference(data, train_names):
+            raise AdlError(f"{data}: --target recovery, but no training episode has a reference stream "
+                           "(frames/reference_stream: bags recorded with record --recoveries); use --target command")
         stats = (compute_action_stats(data, train_names) if cfg.target == "action"
                  else compute_window_stats(data, train_names, w))
 
