@@ -26,6 +26,7 @@ from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import claims
 from .evaluation.outcomes import breakdown_lines
 from .evaluation.person import motion_training_lines, moving_person_lines
+from .evaluation.recoveries import OPEN_LOOP_OF, recoveries_lines
 from .evaluation.sections import grasp_tasks
 from .evaluation.tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
 from .stats import rate_cell
@@ -64,6 +65,9 @@ CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_l
                      "metrics/replay_moving_open_details.json": "replay_moving_open_details.json",
                      "metrics/replay_ensemble_details.json": "replay_ensemble_details.json",
                      "metrics/replay_moving_ensemble_details.json": "replay_moving_ensemble_details.json",
+                     # the trio trained on demonstrations with recoveries, replayed on the same scenes
+                     "metrics/replay_recoveries_details.json": "replay_recoveries_details.json",
+                     "metrics/replay_moving_recoveries_details.json": "replay_moving_recoveries_details.json",
                      "reports/report.md": "report.md", "reports/history.md": "history.md",
                      # the open-loop reference: the default pipeline's replay of the same scenes in that run
                      "../../metrics/replay_details.json": "replay_open_details.json"}
@@ -71,7 +75,6 @@ CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_l
 MOVING_PERSON_FILES = {"metrics/replay_moving_details.json": "replay_moving_details.json",
                        "metrics/replay_still_details.json": "replay_still_details.json",
                        "reports/replay_moving.md": "replay_moving.md", "reports/replay_still.md": "replay_still.md"}
-OPEN_LOOP_OF = {"fm_cnn": "fm_cnn/euler-1", "dp_cnn": "dp_cnn/ddpm-16", "bc_cnn": "bc_cnn"}
 
 
 def _load(path: Path) -> dict:
@@ -156,6 +159,13 @@ def tables(results: Path) -> dict[str, str]:
         moving = [closed / f"replay_moving_{k}_details.json" for k in ("open", "closed_loop")]
         if all(m.exists() for m in moving):
             out["moving-person"] = moving_person_lines(ol, cl, *map(_load, moving))
+        pairs = [("still", "replay_closed_loop", "replay_recoveries", ol),
+                 ("moving", "replay_moving_closed_loop", "replay_moving_recoveries", None)]
+        worlds = [(world, _load(closed / f"{path}_details.json"), _load(closed / f"{rec}_details.json"),
+                   open_loop or _load(closed / "replay_moving_open_details.json"))
+                  for world, path, rec, open_loop in pairs if (closed / f"{rec}_details.json").exists()]
+        if worlds:
+            out["closed-loop-recoveries"] = recoveries_lines(worlds)
         trained = results / "moving_person"
         if (trained / "replay_moving_details.json").exists() and (trained / "replay_still_details.json").exists():
             out["moving-trained"] = motion_training_lines(

@@ -126,3 +126,26 @@ def test_train_target_recovery_needs_a_reference_stream(recorded, tmp_path: Path
             assert "no training episode has a reference stream" in one_line_error(proc)
         else:
             assert proc.returncode == 0, proc.stderr
+
+
+def test_the_recoveries_table_pairs_each_policy_on_the_same_scenes() -> None:
+    from adlpipe.evaluation.recoveries import recoveries_lines
+
+    names = [f"fresh/t/{i}" for i in range(10)]
+    diag = {n: {"replans": 4, "replans_off_path": 1 if i < 5 else 3, "peak_force_n": 25.0 if i == 0 else 5.0}
+            for i, n in enumerate(names)}
+    path = {"per_episode": {"fm_cnn/euler-1/Ta-16": {n: i < 2 for i, n in enumerate(names)},
+                            "oracle-command/Ta-16": dict.fromkeys(names, True)},
+            "diagnostics": {"fm_cnn/euler-1/Ta-16": diag}}
+    rec = {"per_episode": {"fm_cnn/euler-1/Ta-16": {n: 1 <= i < 7 for i, n in enumerate(names)},
+                           "oracle-command/Ta-16": dict.fromkeys(names, True)},
+           "diagnostics": {"fm_cnn/euler-1/Ta-16": {n: {**d, "replans_off_path": 1} for n, d in diag.items()}}}
+    open_loop = {"per_episode": {"fm_cnn/euler-1": {n: i < 5 for i, n in enumerate(names)}}}
+    lines = recoveries_lines([("still", path, rec, open_loop)])
+    assert len(lines) == 3  # the oracle is the executor's ceiling, not a trained policy: no row
+    cells = [c.strip() for c in lines[2].split("|")[1:-1]]
+    assert cells[:3] == ["fm_cnn/euler-1", "still", "16"]
+    assert cells[3].startswith("20 [") and cells[4].startswith("60 [")
+    assert cells[5].startswith("+40.0 points (5 : 1 discordant scenes")  # scenes 2-6 gained, scene 0 lost
+    assert cells[6].startswith("50 [") and cells[7].startswith("+10.0 points (2 : 1 discordant")
+    assert cells[8] == "50 % / 25 %" and cells[9] == "10.0 % / 10.0 %"

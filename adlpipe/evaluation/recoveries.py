@@ -1,0 +1,53 @@
+"""The closed-loop trio trained on demonstrations with recoveries (record --recoveries, train --target recovery)
+against the same trio trained on the undisturbed demonstrator's commands: success at each Ta on the same fresh
+scenes, paired per scene, beside the first-frame twin open loop, with how often each re-planned off the path and
+pushed the person."""
+
+from __future__ import annotations
+
+from ..sim.tasks import FORCE_LIMIT_N
+from ..stats import paired_success, rate_cell
+
+OPEN_LOOP_OF = {"fm_cnn": "fm_cnn/euler-1", "dp_cnn": "dp_cnn/ddpm-16", "bc_cnn": "bc_cnn"}
+
+
+def _share(diags: dict, part: str, whole: str | None = None) -> str:
+    """Re-plans off the path over all re-plans (part, whole), or the share of scenes over the force limit."""
+    if whole is not None:
+        total = sum(d.get(whole, 0) for d in diags.values())
+        return f"{100 * sum(d.get(part, 0) for d in diags.values()) / total:.0f} %" if total else "-"
+    return f"{100 * sum(d.get(part, 0.0) > FORCE_LIMIT_N for d in diags.values()) / max(len(diags), 1):.1f} %"
+
+
+def _paired(first: dict, second: dict, names: list[str]) -> str:
+    a, b = [bool(first[n]) for n in names], [bool(second[n]) for n in names]
+    return f"{100 * (sum(a) - sum(b)) / max(len(names), 1):+.1f} points ({paired_success(a, b)})"
+
+
+def recoveries_lines(worlds: list[tuple[str, dict, dict, dict]]) -> list[str]:
+    """worlds: (the person still or moving, the path-trained trio's replay details, the recovery-trained trio's,
+    the first-frame trio's open-loop replay on the same scenes). One row per policy and Ta both replayed."""
+    lines = ["| closed-loop policy | person | Ta | trained on the path | with recoveries | recoveries - path "
+             "(discordant, McNemar) | open loop, first frame | recoveries - open loop (discordant, McNemar) | "
+             f"re-plans off the path: path / recoveries | force > {FORCE_LIMIT_N:.0f} N: path / recoveries |",
+             "| --- | --- | ---: | ---: | ---: | --- | ---: | --- | --- | --- |"]
+    for world, path, rec, open_loop in worlds:
+        order = sorted(rec.get("per_episode", {}), key=lambda label: (label.rsplit("/Ta-", 1)[0],
+                                                                      int(label.rsplit("/Ta-", 1)[1])))
+        for label in order:
+            mine, theirs = rec["per_episode"][label], path.get("per_episode", {}).get(label)
+            head, ta = label.rsplit("/Ta-", 1)
+            if theirs is None or head.startswith("oracle"):
+                continue
+            names = sorted(n for n in mine if n in theirs)
+            ol = open_loop.get("per_episode", {}).get(OPEN_LOOP_OF.get(head.split("/")[0], ""), {})
+            both = [n for n in names if n in ol]
+            dp, dr = path.get("diagnostics", {}).get(label, {}), rec.get("diagnostics", {}).get(label, {})
+            lines.append(
+                f"| {head} | {world} | {ta} | {rate_cell(sum(map(bool, (theirs[n] for n in names))), len(names))} | "
+                f"{rate_cell(sum(map(bool, (mine[n] for n in names))), len(names))} | {_paired(mine, theirs, names)} | "
+                + (f"{rate_cell(sum(map(bool, (ol[n] for n in both))), len(both))} | {_paired(mine, ol, both)} | "
+                   if len(both) == len(names) and both else "- | - | ")
+                + f"{_share(dp, 'replans_off_path', 'replans')} / {_share(dr, 'replans_off_path', 'replans')} | "
+                f"{_share(dp, 'peak_force_n')} / {_share(dr, 'peak_force_n')} |")
+    return lines if len(lines) > 2 else []
