@@ -217,9 +217,11 @@ def save_study(pipeline: Path, results: Path) -> None:
 def save_closed_loop(pipeline: Path, results: Path) -> None:
     """Keep the closed-loop pipeline's details, reports and training logs in RESULTS/closed_loop (all readable
     before any is copied)."""
-    first = next(iter(CLOSED_LOOP_FILES))
-    if not (pipeline / first).is_file():
-        raise AdlError(f"{pipeline}: the closed loop has not been replayed ({first} missing); run dvc repro there")
+    # any one replay will do: a session may re-run only one lever's stages (the others' kept files stay)
+    replays = [k for k in CLOSED_LOOP_FILES if k.startswith("metrics/replay_")]
+    if not any((pipeline / k).is_file() for k in replays):
+        raise AdlError(f"{pipeline}: the closed loop has not been replayed ({replays[0]} missing); run dvc repro "
+                       "there")
     keep(pipeline, CLOSED_LOOP_FILES, "*.csv", results / "closed_loop")
 
 

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from conftest import REPO, one_line_error, run_module
 
+from adlpipe.results import save_closed_loop
+
 
 def test_readme_tables_agree_with_the_committed_results() -> None:
     proc = run_module("results", "--check")
@@ -48,3 +50,16 @@ def test_save_closed_loop_before_its_replay_copies_nothing(tmp_path: Path) -> No
                       tmp_path / "none.md")
     assert proc.returncode != 0 and "replay_closed_loop_details.json missing" in one_line_error(proc)
     assert not results.exists()
+
+
+def test_save_closed_loop_keeps_one_levers_replay_alone(tmp_path: Path) -> None:
+    """A session that re-runs only one lever's stages keeps that replay; nothing else is written or required."""
+    pipeline = tmp_path / "closed_loop"
+    (pipeline / "metrics").mkdir(parents=True)
+    details = REPO / "results" / "closed_loop" / "replay_closed_loop_details.json"
+    shutil.copy(details, pipeline / "metrics" / "replay_recoveries_details.json")
+    results = tmp_path / "results"
+    save_closed_loop(pipeline, results)  # what --save-closed-loop does before it rewrites the tables
+    kept = sorted(p.name for p in (results / "closed_loop").iterdir())
+    assert kept == ["replay_recoveries_details.json"]
+    assert (results / "closed_loop" / kept[0]).read_bytes() == details.read_bytes()
