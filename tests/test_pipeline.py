@@ -56,7 +56,9 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def side_pipeline(root: Path, name: str, **params: object) -> Path:
     """pipelines/<name> (its own DVC project) run on the tiny default pipeline's data and models."""
     where = root / "pipelines" / name
-    shutil.copytree(REPO / "pipelines" / name, where, ignore=shutil.ignore_patterns("metrics", "models", "reports"))
+    # .resume: a long training in progress, committed for the next session to finish
+    shutil.copytree(REPO / "pipelines" / name, where,
+                    ignore=shutil.ignore_patterns("metrics", "models", "reports", ".resume"))
     if params:
         own = yaml.safe_load((where / "params.yaml").read_text())
         for section, values in params.items():
