@@ -305,6 +305,18 @@ def test_resume_after_interruption_matches_an_uninterrupted_run(ingested: Path, 
         assert torch.allclose(a[k], b[k], atol=1e-6), k
 
 
+def test_a_run_is_not_resumed_on_other_data(ingested: Path, split_file: Path, tmp_path: Path) -> None:
+    """A recording redone otherwise (its normalisation statistics differ) does not continue a committed run."""
+    cfg = ModelConfig(model="bc_cnn", **TINY)
+    kw = dict(epochs=4, batch_size=2, lr=1e-3, warmup_steps=2, seed=5)
+    assert train(ingested, split_file, tmp_path / "b", cfg, stop_after_epoch=2, **kw) == {"interrupted_at": 2}
+    ck = load_checkpoint(tmp_path / "b" / "last.pt")
+    ck["stats"]["max"][0] += 1.0
+    torch.save(ck, tmp_path / "b" / "last.pt")
+    with pytest.raises(AdlError, match="checkpoint is from other settings or data"):
+        train(ingested, split_file, tmp_path / "b", cfg, **kw)
+
+
 def test_checkpoints_never_unpickle_code(tmp_path: Path) -> None:
     class Evil:
         def __reduce__(self):  # noqa: ANN204

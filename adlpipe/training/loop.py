@@ -70,7 +70,8 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     policy, model, opt, sched, ema = optimisation(cfg, device, ranks, lr, weight_decay, warmup_steps,
                                                   epochs * steps_per_epoch)
     last = work / "last.pt"
-    history, start_epoch = resume(last, cfg, hparams, policy, ema, opt, sched, replace_stale=resume_dir is not None)
+    history, start_epoch = resume(last, cfg, hparams, stats, policy, ema, opt, sched,
+                                  replace_stale=resume_dir is not None)
     best_px = min((r["val_px"] for r in history if r.get("val_px") is not None), default=math.inf)
 
     def inference_checkpoint(epoch: int) -> dict:
@@ -169,22 +170,25 @@ def resumable(policy: Policy, ema: EMA, opt: torch.optim.Optimizer, sched: objec
             "config": cfg.to_dict(), "hparams": hparams, "stats": stats}
 
 
-def resume(last: Path, cfg: ModelConfig, hparams: dict, policy: Policy, ema: EMA, opt: torch.optim.Optimizer,
-           sched: object, replace_stale: bool = False) -> tuple[list[dict], int]:
+def resume(last: Path, cfg: ModelConfig, hparams: dict, stats: dict, policy: Policy, ema: EMA,
+           opt: torch.optim.Optimizer, sched: object, replace_stale: bool = False) -> tuple[list[dict], int]:
     """(history, epochs done) from the checkpoint a killed run left, its state loaded into the model, EMA,
-    optimiser and schedule; ([], 0) without one. A checkpoint of other settings is one line, or (replace_stale)
-    removed with best.pt and checkpoints/ beside it."""
+    optimiser and schedule; ([], 0) without one. A checkpoint of other settings, or of other data (its
+    normalisation statistics differ: a recording redone otherwise), is one line, or (replace_stale) removed with
+    best.pt and checkpoints/ beside it."""
     if not last.exists():
         return [], 0
     ck = load_checkpoint(last)
-    if (ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams) and replace_stale:
-        print(f"{last}: a checkpoint of other settings; training from scratch", file=sys.stderr)
+    other = ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams or ck.get("stats", stats) != stats
+    if other and replace_stale:
+        print(f"{last}: a checkpoint of other settings or data; training from scratch", file=sys.stderr)
         for name in ("last.pt", "best.pt"):
             (last.parent / name).unlink(missing_ok=True)
         shutil.rmtree(last.parent / "checkpoints", ignore_errors=True)
         return [], 0
-    if ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams:
-        raise AdlError(f"{last}: checkpoint is from other settings; remove {last.parent} (or use --restart) to retrain")
+    if other:
+        raise AdlError(f"{last}: checkpoint is from other settings or data; remove {last.parent} (or use --restart) "
+                       "to retrain")
     print(f"{last}: resuming after epoch {int(ck['epoch'])}", file=sys.stderr)
     policy.load_state_dict(ck["model"])
     ema.model.load_state_dict(ck["ema"])
