@@ -60,9 +60,10 @@ def stream_sizes(data: Path) -> tuple[int, int]:
 
 
 def training_episodes(data: Path, split: dict, cfg: ModelConfig, val_fraction: float,
-                      seed: int) -> tuple[list[str], list[str], int]:
-    """(train, validation) episodes of the split's train part, and the dataset's stored image size; the data must
-    hold the model's cameras and (first-frame models) its horizon."""
+                      seed: int) -> tuple[list[str], list[str], int, list[str]]:
+    """(train, validation) episodes of the split's train part, the dataset's stored image size, and the train
+    part's recording keys (the bags' file names: the same when another host re-records the same scenes, where the
+    episode names are not); the data must hold the model's cameras and (first-frame models) its horizon."""
     with schema.open_dataset(data, split["train"] + split["test"]) as f:
         horizon, stored_size = int(f.attrs["n_waypoints"]), int(f.attrs["image_size"])
         tasks = {n: str(f[schema.EPISODES][n].attrs["task"]) for n in split["train"]}
@@ -70,7 +71,7 @@ def training_episodes(data: Path, split: dict, cfg: ModelConfig, val_fraction: f
         check_cameras(f, split["train"] + split["test"], cfg.cameras, str(data))
     if horizon != cfg.horizon and not cfg.closed_loop:
         raise AdlError(f"{data}: trajectories of {horizon} waypoints, the model is configured for {cfg.horizon}")
-    return (*split_validation(tasks, val_fraction, seed, keys), stored_size)
+    return (*split_validation(tasks, val_fraction, seed, keys), stored_size, sorted(keys.values()))
 
 
 def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], val_names: list[str],

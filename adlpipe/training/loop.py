@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
@@ -50,7 +51,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     work.mkdir(parents=True, exist_ok=True)
     split = load_split(split_path)
     check_run(split, split_path, batch_size, ranks)
-    train_names, val_names, stored_size = training_episodes(data, split, cfg, val_fraction, seed)
+    train_names, val_names, stored_size, train_keys = training_episodes(data, split, cfg, val_fraction, seed)
     aug = Augment(stored_size, crop=cfg.crop) if augment else None  # windows without images skip it
     stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed,
                                                 windows_per_epoch, open_files)
@@ -62,7 +63,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     steps_per_epoch = len(loader)
     hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
                "warmup_steps": warmup_steps, "grad_clip": grad_clip, "seed": seed, "data": str(data),
-               "split": sorted(split["train"]),
+               "split": train_keys,  # by recording, so a run resumes on the same scenes re-recorded elsewhere
                "val_fraction": val_fraction, "val_every": val_every, "augment": augment,
                "windows_per_epoch": windows_per_epoch}
 
@@ -170,6 +171,15 @@ def resumable(policy: Policy, ema: EMA, opt: torch.optim.Optimizer, sched: objec
             "config": cfg.to_dict(), "hparams": hparams, "stats": stats}
 
 
+STATS_RTOL = 1e-6  # another host's re-recording of the same scenes: its physics differs in the 10th digit
+
+
+def same_stats(a: dict, b: dict) -> bool:
+    """Normalisation statistics of the same data: equal up to the float noise between hosts."""
+    return set(a) == set(b) and all(np.shape(a[k]) == np.shape(b[k]) and np.allclose(a[k], b[k], rtol=STATS_RTOL,
+                                                                                       atol=1e-9) for k in a)
+
+
 def resume(last: Path, cfg: ModelConfig, hparams: dict, stats: dict, policy: Policy, ema: EMA,
            opt: torch.optim.Optimizer, sched: object, replace_stale: bool = False) -> tuple[list[dict], int]:
     """(history, epochs done) from the checkpoint a killed run left, its state loaded into the model, EMA,
@@ -179,7 +189,8 @@ def resume(last: Path, cfg: ModelConfig, hparams: dict, stats: dict, policy: Pol
     if not last.exists():
         return [], 0
     ck = load_checkpoint(last)
-    other = ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams or ck.get("stats", stats) != stats
+    other = ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams or not same_stats(ck.get("stats", stats),
+                                                                                                 stats)
     if other and replace_stale:
         print(f"{last}: a checkpoint of other settings or data; training from scratch", file=sys.stderr)
         for name in ("last.pt", "best.pt"):
