@@ -26,7 +26,7 @@ from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import claims
 from .evaluation.outcomes import breakdown_lines
 from .evaluation.person import motion_training_lines, moving_person_lines
-from .evaluation.recoveries import OPEN_LOOP_OF, recoveries_lines
+from .evaluation.recoveries import OPEN_LOOP_OF, recording_line, recoveries_lines
 from .evaluation.sections import grasp_tasks
 from .evaluation.tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
 from .stats import rate_cell
@@ -68,6 +68,7 @@ CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_l
                      # the trio trained on demonstrations with recoveries, replayed on the same scenes
                      "metrics/replay_recoveries_details.json": "replay_recoveries_details.json",
                      "metrics/replay_moving_recoveries_details.json": "replay_moving_recoveries_details.json",
+                     "metrics/recoveries_recording.json": "recoveries_recording.json",
                      "reports/report.md": "report.md", "reports/history.md": "history.md",
                      # the open-loop reference: the default pipeline's replay of the same scenes in that run
                      "../../metrics/replay_details.json": "replay_open_details.json"}
@@ -165,7 +166,9 @@ def tables(results: Path) -> dict[str, str]:
                    open_loop or _load(closed / "replay_moving_open_details.json"))
                   for world, path, rec, open_loop in pairs if (closed / f"{rec}_details.json").exists()]
         if worlds:
-            out["closed-loop-recoveries"] = recoveries_lines(worlds)
+            recording = closed / "recoveries_recording.json"
+            out["closed-loop-recoveries"] = ([recording_line(_load(recording)), ""] if recording.exists() else []) \
+                + recoveries_lines(worlds)
         trained = results / "moving_person"
         if (trained / "replay_moving_details.json").exists() and (trained / "replay_still_details.json").exists():
             out["moving-trained"] = motion_training_lines(

@@ -289,6 +289,28 @@ def test_closed_loop_replay_replans_from_new_images(closed_loop: Path, pipeline:
         assert row in section, row
 
 
+def test_the_trio_trained_with_recoveries_replays_on_the_same_scenes(closed_loop: Path, pipeline: Path) -> None:
+    from adlpipe.evaluation.recoveries import recoveries_lines
+
+    rec = json.loads((closed_loop / "metrics" / "recoveries_recording.json").read_text())
+    # the recorder pushed its demonstrator off the path (2-5 cm pushes, or stalls), in the default data's scenes
+    assert rec["episodes"] == 20 and rec["disturbed"] >= 10 and rec["largest_offset_m"][2] >= 0.02, rec
+    assert 0 < rec["samples_off"] < 0.6, rec
+    assert json.loads((closed_loop / "data" / "recoveries" / "split.json").read_text()) == json.loads(
+        (pipeline / "data" / "split.json").read_text())  # the same names, so the same split
+    ck = __import__("torch").load(closed_loop / "models_recoveries" / "bc_cnn" / "best.pt", weights_only=True)
+    assert ck["config"]["target"] == "recovery" and ck["config"]["horizon"] == 16
+    path = json.loads((closed_loop / "metrics" / "replay_closed_loop_details.json").read_text())
+    got = json.loads((closed_loop / "metrics" / "replay_recoveries_details.json").read_text())
+    assert set(got["success"]) == set(path["success"])  # every policy and Ta the path-trained trio ran
+    assert all(set(v) == set(path["per_episode"]["bc_cnn/Ta-8"]) for v in got["per_episode"].values())
+    open_loop = json.loads((pipeline / "metrics" / "replay_details.json").read_text())
+    rows = recoveries_lines([("still", path, got, open_loop)])
+    assert len(rows) == 2 + 3 * 2 and all(" | still | " in r for r in rows[2:]), rows  # trio x Ta, oracle left out
+    moving = json.loads((closed_loop / "metrics" / "replay_moving_recoveries_details.json").read_text())
+    assert moving["scenes"]["moving_person"] and moving["success"]["oracle-command/Ta-8"]["overall"] >= 0.9
+
+
 def test_the_papers_pair_runs_beside_the_trio(paper: Path) -> None:
     ev = json.loads((paper / "metrics" / "eval_details.json").read_text())
     assert set(PAPER + MODELS) <= set(ev["models"])

@@ -14,6 +14,7 @@ from conftest import one_line_error, run_module
 
 from adlpipe.dataset import schema
 from adlpipe.dataset.loader import WindowDataset, Windows, command_series, compute_window_stats, reference_series
+from adlpipe.evaluation.recoveries import recording_disturbances, recording_line
 from adlpipe.recovery import RETURN_S, recovering_plan
 from adlpipe.sim.disturbances import Disturbance, disturbed_path, draw_disturbances
 
@@ -110,6 +111,20 @@ def test_recovery_labels_never_show_the_disturbance(recorded) -> None:
     gap = np.array(gap)
     assert gap.max() > 0.02  # the command's own future shows a disturbance in some windows
     assert (gap < 0.003).sum() >= len(gap) // 4  # where none lies ahead, both labels are the same plan
+
+
+def test_the_recordings_disturbances_are_measured_from_its_streams(recorded) -> None:
+    clean, disturbed = recorded
+    names = {}
+    for data in recorded:
+        with h5py.File(data) as f:
+            names[data] = schema.episode_names(f)
+    quiet = recording_disturbances(clean, names[clean])  # no reference stream: its own command is its path
+    assert quiet["disturbed"] == 0 and quiet["largest_offset_m"] == [0.0, 0.0, 0.0] and quiet["samples_off"] == 0
+    got = recording_disturbances(disturbed, names[disturbed])
+    assert got["episodes"] == 1 and got["disturbed"] == 1 and got["largest_offset_m"][2] > 0.02
+    assert 0 < got["samples_off"] < 0.6
+    assert "1 of 1 demonstrations pushed more than 1 cm off their path" in recording_line(got)
 
 
 def test_train_target_recovery_needs_a_reference_stream(recorded, tmp_path: Path) -> None:

@@ -5,6 +5,13 @@ pushed the person."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..dataset import schema
+from ..dataset.loader import command_series, reference_series
 from ..sim.tasks import FORCE_LIMIT_N
 from ..stats import paired_success, rate_cell
 
@@ -51,3 +58,34 @@ def recoveries_lines(worlds: list[tuple[str, dict, dict, dict]]) -> list[str]:
                 + f"{_share(dp, 'replans_off_path', 'replans')} / {_share(dr, 'replans_off_path', 'replans')} | "
                 f"{_share(dp, 'peak_force_n')} / {_share(dr, 'peak_force_n')} |")
     return lines if len(lines) > 2 else []
+
+
+OFF_M = 0.01  # a command sample this far from the reference counts as off the path
+
+
+def recording_disturbances(index: str | Path, names: list[str]) -> dict:
+    """How far a recording's demonstrator was pushed off its path (record --recoveries): per episode, the largest
+    distance of its command from its reference stream, and the share of command samples more than OFF_M off.
+    Reads one episode at a time; an episode without a reference stream counts as undisturbed (offset 0)."""
+    largest, off, samples, disturbed = [], 0, 0, 0
+    with h5py.File(index, "r") as f:
+        for name in names:
+            g = f[schema.EPISODES][name]
+            t, cmd = command_series(g, f"{index}: {name}")
+            ref_t, ref = reference_series(g, f"{index}: {name}")
+            gap = np.linalg.norm(cmd - np.stack([np.interp(t, ref_t, ref[:, d]) for d in range(3)], 1), axis=1)
+            largest.append(float(gap.max()))
+            off, samples = off + int((gap > OFF_M).sum()), samples + len(gap)
+            disturbed += bool(gap.max() > OFF_M)
+    q = np.percentile(largest, [0, 50, 100]) if largest else np.zeros(3)
+    return {"episodes": len(names), "disturbed": disturbed, "largest_offset_m": [round(float(v), 4) for v in q],
+            "samples_off": round(off / max(samples, 1), 4), "off_m": OFF_M}
+
+
+def recording_line(rec: dict) -> str:
+    """One sentence on recording_disturbances' figures, for the table's preamble."""
+    lo, med, hi = (100 * v for v in rec["largest_offset_m"])
+    return (f"The recording with recoveries: {rec['disturbed']} of {rec['episodes']} demonstrations pushed more than "
+            f"{100 * rec['off_m']:.0f} cm off their path, the largest offset per demonstration {med:.1f} cm median "
+            f"({lo:.1f}-{hi:.1f}), {100 * rec['samples_off']:.1f} % of command samples more than "
+            f"{100 * rec['off_m']:.0f} cm off.")
