@@ -151,7 +151,7 @@ def test_the_recoveries_table_pairs_each_policy_on_the_same_scenes() -> None:
             for i, n in enumerate(names)}
     path = {"per_episode": {"fm_cnn/euler-1/Ta-16": {n: i < 2 for i, n in enumerate(names)},
                             "oracle-command/Ta-16": dict.fromkeys(names, True)},
-            "diagnostics": {"fm_cnn/euler-1/Ta-16": diag}}
+            "diagnostics": {"fm_cnn/euler-1/Ta-16": diag}, "training": {"fm_cnn": {"converged": False}}}
     rec = {"per_episode": {"fm_cnn/euler-1/Ta-16": {n: 1 <= i < 7 for i, n in enumerate(names)},
                            "oracle-command/Ta-16": dict.fromkeys(names, True)},
            "diagnostics": {"fm_cnn/euler-1/Ta-16": {n: {**d, "replans_off_path": 1} for n, d in diag.items()}}}
@@ -164,3 +164,4 @@ def test_the_recoveries_table_pairs_each_policy_on_the_same_scenes() -> None:
     assert cells[5].startswith("+40.0 points (5 : 1 discordant scenes")  # scenes 2-6 gained, scene 0 lost
     assert cells[6].startswith("50 [") and cells[7].startswith("+10.0 points (2 : 1 discordant")
     assert cells[8] == "50 % / 25 %" and cells[9] == "10.0 % / 10.0 %"
+    assert cells[10] == "no / -"  # the path-trained model did not converge; the other's training is not recorded

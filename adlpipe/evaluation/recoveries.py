@@ -26,6 +26,12 @@ def _share(diags: dict, part: str, whole: str | None = None) -> str:
     return f"{100 * sum(d.get(part, 0.0) > FORCE_LIMIT_N for d in diags.values()) / max(len(diags), 1):.1f} %"
 
 
+def _converged(details: dict, policy: str) -> str:
+    """Whether the policy's model met the convergence rule in training, as replay recorded it."""
+    flag = details.get("training", {}).get(policy.split("/")[0], {}).get("converged")
+    return {True: "yes", False: "no"}.get(flag, "-")
+
+
 def _paired(first: dict, second: dict, names: list[str]) -> str:
     a, b = [bool(first[n]) for n in names], [bool(second[n]) for n in names]
     return f"{100 * (sum(a) - sum(b)) / max(len(names), 1):+.1f} points ({paired_success(a, b)})"
@@ -36,8 +42,9 @@ def recoveries_lines(worlds: list[tuple[str, dict, dict, dict]]) -> list[str]:
     the first-frame trio's open-loop replay on the same scenes). One row per policy and Ta both replayed."""
     lines = ["| closed-loop policy | person | Ta | trained on the path | with recoveries | recoveries - path "
              "(discordant, McNemar) | open loop, first frame | recoveries - open loop (discordant, McNemar) | "
-             f"re-plans off the path: path / recoveries | force > {FORCE_LIMIT_N:.0f} N: path / recoveries |",
-             "| --- | --- | ---: | ---: | ---: | --- | ---: | --- | --- | --- |"]
+             f"re-plans off the path: path / recoveries | force > {FORCE_LIMIT_N:.0f} N: path / recoveries | "
+             "converged (2 % rule): path / recoveries |",
+             "| --- | --- | ---: | ---: | ---: | --- | ---: | --- | --- | --- | --- |"]
     for world, path, rec, open_loop in worlds:
         order = sorted(rec.get("per_episode", {}), key=lambda label: (label.rsplit("/Ta-", 1)[0],
                                                                       int(label.rsplit("/Ta-", 1)[1])))
@@ -56,7 +63,8 @@ def recoveries_lines(worlds: list[tuple[str, dict, dict, dict]]) -> list[str]:
                 + (f"{rate_cell(sum(map(bool, (ol[n] for n in both))), len(both))} | {_paired(mine, ol, both)} | "
                    if len(both) == len(names) and both else "- | - | ")
                 + f"{_share(dp, 'replans_off_path', 'replans')} / {_share(dr, 'replans_off_path', 'replans')} | "
-                f"{_share(dp, 'peak_force_n')} / {_share(dr, 'peak_force_n')} |")
+                f"{_share(dp, 'peak_force_n')} / {_share(dr, 'peak_force_n')} | "
+                f"{_converged(path, head)} / {_converged(rec, head)} |")
     return lines if len(lines) > 2 else []
 
 
