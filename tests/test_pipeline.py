@@ -270,7 +270,7 @@ def test_closed_loop_replay_replans_from_new_images(closed_loop: Path, pipeline:
         assert details["success"][f"oracle-command/Ta-{ta}"]["overall"] >= 0.9, details["success"]
     assert details["training"]["fm_cnn"]["optimizer_steps"] == json.loads(
         (pipeline / "models" / "fm_cnn" / "metrics.json").read_text())["optimizer_steps"]  # the same budget
-    ck = __import__("torch").load(closed_loop / "models" / "fm_cnn" / "best.pt", weights_only=True)
+    ck = torch.load(closed_loop / "models" / "fm_cnn" / "best.pt", weights_only=True)
     cfg = ck["config"]
     assert cfg["n_obs"] == 2 and cfg["horizon"] == 16 and cfg["rate_hz"] == 10 and cfg["state_dim"] == 8
     assert cfg["target"] == "command"  # the commanded tcp, with the measured tcp and gripper as state
@@ -303,7 +303,7 @@ def test_the_trio_trained_with_recoveries_replays_on_the_same_scenes(closed_loop
         with h5py.File(data / "adl.h5") as f:
             trained.append(sorted(recording_keys(f, json.loads((data / "split.json").read_text())["train"]).values()))
     assert trained[0] == trained[1]  # the same scenes' bags (other episode names: other commands) in training
-    ck = __import__("torch").load(closed_loop / "models_recoveries" / "bc_cnn" / "best.pt", weights_only=True)
+    ck = torch.load(closed_loop / "models_recoveries" / "bc_cnn" / "best.pt", weights_only=True)
     assert ck["config"]["target"] == "recovery" and ck["config"]["horizon"] == 16
     path = json.loads((closed_loop / "metrics" / "replay_closed_loop_details.json").read_text())
     got = json.loads((closed_loop / "metrics" / "replay_recoveries_details.json").read_text())

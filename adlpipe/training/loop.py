@@ -189,8 +189,8 @@ def resume(last: Path, cfg: ModelConfig, hparams: dict, stats: dict, policy: Pol
     if not last.exists():
         return [], 0
     ck = load_checkpoint(last)
-    other = ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams or not same_stats(ck.get("stats", stats),
-                                                                                                 stats)
+    same_data = same_stats(ck.get("stats", stats), stats)
+    other = ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams or not same_data
     if other and replace_stale:
         print(f"{last}: a checkpoint of other settings or data; training from scratch", file=sys.stderr)
         for name in ("last.pt", "best.pt"):
