@@ -28,6 +28,7 @@ from .evaluation.outcomes import breakdown_lines
 from .evaluation.person import motion_training_lines, moving_person_lines
 from .evaluation.recoveries import OPEN_LOOP_OF, recording_line, recoveries_lines
 from .evaluation.sections import grasp_tasks
+from .evaluation.table2 import table2_lines
 from .evaluation.tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
 from .stats import rate_cell
 
@@ -174,6 +175,7 @@ def tables(results: Path) -> dict[str, str]:
             out["moving-trained"] = motion_training_lines(
                 _load(moving[0]), _load(trained / "replay_moving_details.json"), ol,
                 _load(trained / "replay_still_details.json"))
+    out["table2"] = table2_lines(results.parent / "pipelines")  # the benchmark pipelines' committed results
     return {k: "\n".join(v) for k, v in out.items() if v}
 
 

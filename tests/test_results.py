@@ -5,8 +5,11 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import pytest
 from conftest import REPO, one_line_error, run_module
 
+from adlpipe.errors import AdlError
+from adlpipe.evaluation.table2 import table2_lines
 from adlpipe.results import save_closed_loop
 
 
@@ -63,3 +66,24 @@ def test_save_closed_loop_keeps_one_levers_replay_alone(tmp_path: Path) -> None:
     kept = sorted(p.name for p in (results / "closed_loop").iterdir())
     assert kept == ["replay_recoveries_details.json"]
     assert (results / "closed_loop" / kept[0]).read_bytes() == details.read_bytes()
+
+
+def test_table2_puts_the_final_checkpoint_beside_the_best_ones() -> None:
+    lines = table2_lines(REPO / "pipelines")
+    fm = next(r for r in lines if r.startswith("| Push-T | FM-CNN |"))
+    # pusht_levers_long: the final checkpoint on 500 initial conditions, the best along training on 50
+    assert "**0.896 [0.879, 0.911]** (0.845), 500 initial conditions" in fm
+    assert "0.908 (13,302) / 0.900 (50 initial conditions each)" in fm and fm.endswith("| yes |")
+    kitchen = [r for r in lines if r.startswith("| Franka Kitchen | FM-CNN |")]
+    assert "| 58,140 |" in kitchen[0] and "0.823 [0.775, 0.868]" in kitchen[0] and kitchen[0].endswith("| no |")
+
+
+def test_table2_waits_for_a_run_not_committed_and_names_a_broken_one(tmp_path: Path) -> None:
+    assert table2_lines(tmp_path) == []  # no benchmark pipeline's results: no table, no error
+    folder = tmp_path / "kitchen_levers" / "results"
+    shutil.copytree(REPO / "pipelines" / "kitchen_levers" / "results", folder,
+                    ignore=shutil.ignore_patterns("kitchen_e60*"))
+    assert [r.split(" | ")[1] for r in table2_lines(tmp_path)[2:]] == ["FM-CNN", "DP-CNN (sample)"]
+    (folder / "kitchen_long_details.json").write_text("{")
+    with pytest.raises(AdlError, match="kitchen_long_details.json: not a benchmark details file"):
+        table2_lines(tmp_path)
