@@ -54,8 +54,9 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root
 
 
-def side_pipeline(root: Path, name: str, **params: object) -> Path:
-    """pipelines/<name> (its own DVC project) run on the tiny default pipeline's data and models."""
+def side_pipeline(root: Path, name: str, targets: tuple[str, ...] = (), **params: object) -> Path:
+    """pipelines/<name> (its own DVC project) run on the tiny default pipeline's data and models: the stages
+    `targets` and what they depend on, or all."""
     where = root / "pipelines" / name
     # .resume: a long training in progress, committed for the next session to finish
     shutil.copytree(REPO / "pipelines" / name, where,
@@ -65,13 +66,16 @@ def side_pipeline(root: Path, name: str, **params: object) -> Path:
         for section, values in params.items():
             own[section].update(values)
         (where / "params.yaml").write_text(yaml.safe_dump(own))
-    dvc(where, "repro")
+    dvc(where, "repro", *targets)
     return where
 
 
 @pytest.fixture(scope="module")
 def closed_loop(pipeline: Path) -> Path:
-    return side_pipeline(pipeline, "closed_loop", closed_loop={"execute": "8 16", "moving_execute": "8", "epochs": 2})
+    # the stages the tests below assert on (the ensemble replays, a fifth of the time, are tested in test_closed_loop)
+    return side_pipeline(pipeline, "closed_loop", ("report", "history", "disturbances", "replay_recoveries",
+                                                   "replay_moving_recoveries"),
+                         closed_loop={"execute": "8 16", "moving_execute": "8", "epochs": 2})
 
 
 @pytest.fixture(scope="module")
@@ -284,6 +288,10 @@ def test_closed_loop_replay_replans_from_new_images(closed_loop: Path, pipeline:
     moving = json.loads((closed_loop / "metrics" / "replay_moving_closed_loop_details.json").read_text())
     assert moving["scenes"]["moving_person"] and set(moving["tasks"]) == set(root["tasks"])
     assert moving["success"]["oracle-command/Ta-8"]["overall"] >= 0.9, moving["success"]
+    # history.py: each model's plan lengths with its true history and with a frozen one, per test window
+    history = json.loads((closed_loop / "metrics" / "history.json").read_text())
+    assert set(history) == {"fm_cnn", "dp_cnn", "bc_cnn"}
+    assert all(len(h["true"]) == len(h["frozen"]) == len(h["demo"]) > 0 for h in history.values()), history
     section = report.split("## The person who moves")[1]
     for row in ("| open loop: demo-still-person |", "| open loop: fm_cnn/euler-1 |", "| closed loop: bc_cnn/Ta-8 |",
                 "| closed loop: oracle-command/Ta-8 |"):
