@@ -42,6 +42,7 @@ PUSHT_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint=None, ee_fram
 KITCHEN_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint="panda0_finger_joint1", ee_frame="end_effector",
                           state="/kitchen/state", action="/kitchen/action")
 REFERENCE_NAMES = ["tcp_x", "tcp_y", "tcp_z"]
+PLAN_TOPIC = "/adl/plan"  # a trial's plans (nav_msgs/Path per re-plan, stamped at its observation)
 SEEDED_WORLDS = {"pusht": ("push_the_T", PUSHT_TOPICS), "kitchen": ("franka_kitchen", KITCHEN_TOPICS)}  # bag stem
 
 
@@ -108,6 +109,11 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
                 tn = ns(t)
                 events.append((tn, 8, topics.joints, M.JOINT_STATE,
                                lambda tn=tn, qp=qp, qv=qv: f.joint_state(tn, st.joint_names, qp, qv)))
+        for t, waypoints, times in st.plans:  # a trial's plans (adlpipe.deploy.trial_bags), each at its observation
+            tn = ns(t)
+            stamps = [ns(t + float(x)) for x in times]
+            events.append((tn, 9, PLAN_TOPIC, M.PATH, lambda tn=tn, w=waypoints, ts=stamps: f.path(
+                tn, topics.base_frame, w, ts)))
         for topic, msgtype, value in outcome or []:  # a trial's outcome, after its last frame (frames in time order)
             events.append((ns(st.camera[-1][0] + 0.01), 10, topic, msgtype,
                            lambda v=value, b=msgtype == M.BOOL: f.boolean(v) if b else f.string(str(v))))

@@ -50,6 +50,7 @@ import os
 import sys
 from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +67,7 @@ from .evaluation.jobs import run_jobs, success_summary
 from .evaluation.outcomes import failure_sections, failure_strips, success_table
 from .evaluation.replay import (
     ENSEMBLED,
+    LoopOptions,
     camera_rate,
     closed_loop_one,
     closed_loop_scenes,
@@ -146,12 +148,28 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    "model's format (its horizon, rate and statistics) anchored as a policy of that target is: "
                    "command (relative to the last command) or ee (relative to the measured tcp); the executor's "
                    "ceiling")
+    p.add_argument("--latency", nargs="+", type=latency_value, metavar="MS",
+                   help="closed loop: the world goes on for MS milliseconds while each plan is computed (a number, or "
+                   "'measured': each plan's own wall-clock time, a server's round trip included); several values are "
+                   "a sweep, each a row labelled lat-MS-EXECUTION (default: none, the world waits for every plan)")
+    p.add_argument("--execution", nargs="+", choices=["sync", "async"], default=["sync"],
+                   help="closed loop with --latency: the arm holds its last command while a plan is computed (sync, "
+                   "default) or goes on with the previous plan's later waypoints (async, LeRobot's asynchronous "
+                   "inference); both: two rows")
+    p.add_argument("--server", metavar="URL",
+                   help="closed loop: plan through a running policy server (python -m adlpipe.serve MODEL), e.g. "
+                   "ws://127.0.0.1:8765, instead of in-process; --models names the model it serves (its format)")
+    p.add_argument("--token-file", type=Path, help="--server: the file holding the server's shared token")
+    p.add_argument("--trial-bags", type=Path, metavar="DIR",
+                   help="closed loop: write every rollout to DIR as a trial bag (MCAP: frames, plans on /adl/plan, "
+                   "/adl/policy, /adl/outcome), which ingest keeps and python -m adlpipe.trials decides from")
     p.add_argument("--metrics", type=Path, default=Path("metrics/replay.json"), help="overall success per policy")
     p.add_argument("--details", type=Path, default=Path("metrics/replay_details.json"), help="success per task")
     p.add_argument("--table", type=Path, default=Path("reports/table2.md"))
     add_device_args(p, compile_option=True)
     p.add_force()
-    p.io(inputs=["models", "data", "split"], outputs=["metrics", "details", "table", "failures"],
+    p.io(inputs=["models", "data", "split", "token_file"], outputs=["metrics", "details", "table", "failures",
+                                                                    "trial_bags"],
          implied=lambda a: ([a.data.with_name("split.json")] if a.split is None else [])
          + ([a.eval] if a.until_decided else []))
     args = p.parse_args(argv)
@@ -159,6 +177,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         raise AdlError("--moving-person: the person's motion is drawn with fresh scenes; add --scenes N")
     if args.temporal_ensemble is not None and args.closed_loop != [1]:
         raise AdlError("--temporal-ensemble: re-plans at every waypoint; use it with --closed-loop 1")
+    if (args.latency or args.server or args.trial_bags) and not args.closed_loop:
+        raise AdlError("--latency, --server and --trial-bags are closed-loop options; add --closed-loop TA")
+    if args.server and len(args.models or []) != 1:
+        raise AdlError("--server: give the one model the server serves with --models (its format and name)")
     if args.until_decided and (not args.scenes or args.closed_loop):
         raise AdlError("--until-decided: replays fresh scenes open loop; add --scenes N (the cap per task) and drop "
                        "--closed-loop")
@@ -264,16 +286,55 @@ def closed_loop_jobs(args: argparse.Namespace, scenes: list[ReplayScene], checkp
                            "camera, so closed-loop replay cannot feed it")
         if i == 0 and args.oracle:  # in the first model's format
             jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, scenes, args.oracle, args.closed_loop, placement,
-                                args.time_limit, args.temporal_ensemble)
+                                args.time_limit, args.temporal_ensemble, loop_options(args))
         for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
             for ta in args.closed_loop:
                 if ta > policy.cfg.horizon:
                     raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
                 label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}" + (
                     ENSEMBLED if args.temporal_ensemble is not None else "")
-                jobs += [(label, str(d), checkpoint, sc, steps, ta, args.seed, placement, None, args.time_limit,
-                          args.temporal_ensemble) for sc in scenes]
+                for suffix, opts in loop_options(args):
+                    jobs += [(label + suffix, str(d), checkpoint, sc, steps, ta, args.seed, placement, None,
+                              args.time_limit, args.temporal_ensemble, opts) for sc in scenes]
+    if args.trial_bags:  # trial k of every policy before trial k + 1 of any: the series a lab runs, alternating
+        policy = [i for i, j in enumerate(jobs) if j[8] is None]  # not the oracle's
+        order = sorted(policy, key=lambda i: (policy.index(i) % len(scenes), policy.index(i) // len(scenes)))
+        for k, i in enumerate(order):
+            jobs[i] = (*jobs[i][:-1], replace(jobs[i][-1], trial_index=k))
     return jobs
+
+
+def latency_value(text: str) -> float | None:
+    """--latency: milliseconds (0 to 10,000), or 'measured' (None)."""
+    if text == "measured":
+        return None
+    return float_range(0, 10_000)(text)
+
+
+def loop_options(args: argparse.Namespace) -> list[tuple[str, LoopOptions]]:
+    """(label suffix, options) of every latency and execution row of a closed-loop replay."""
+    token = read_token(args.token_file) if args.token_file else None
+    trial_dir = str(args.trial_bags) if args.trial_bags else None
+    base = LoopOptions(server=args.server, token=token, trial_dir=trial_dir)
+    if not args.latency:
+        return [("", base)]
+    out = []
+    for ms in args.latency:
+        for mode in args.execution:
+            name = "measured" if ms is None else f"{ms:g}ms"
+            out.append((f"/lat-{name}-{mode}",
+                        replace(base, latency_s=None if ms is None else ms / 1000.0, execution=mode)))
+    return out
+
+
+def read_token(path: Path) -> str:
+    try:
+        token = path.read_text()[:4096].strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise AdlError(f"--token-file {path}: cannot read it ({exc})") from None
+    if not token:
+        raise AdlError(f"--token-file {path}: empty")
+    return token
 
 
 def test_tasks(data: Path, names: list[str]) -> list[str]:

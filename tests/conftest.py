@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -67,6 +68,25 @@ def ingested(mcap_bags: list[Path], tmp_path_factory: pytest.TempPathFactory) ->
     out = tmp_path_factory.mktemp("h5") / "adl.h5"
     run_module("ingest", *mcap_bags, "-o", out, "--size", "64", check=True)
     return out
+
+
+@pytest.fixture(scope="session")
+def closed_loop_model(ingested: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(split with every episode in test, a tiny closed-loop FM trained for one epoch on the command stream): the
+    model gives the oracle its format (horizon, rate, statistics)."""
+    import h5py
+
+    from adlpipe.dataset import schema
+
+    root = tmp_path_factory.mktemp("closed_loop")
+    with h5py.File(ingested) as f:
+        names = schema.episode_names(f)
+    train, split = root / "train.json", root / "split.json"
+    train.write_text(json.dumps({"train": names, "test": [], "seed": 0, "test_fraction": 0.0}))
+    split.write_text(json.dumps({"train": [], "test": names, "seed": 0, "test_fraction": 1.0}))
+    run_module("train", "--model", "fm_cnn", "--closed-loop", "--data", ingested, "--split", train, "--out",
+               root / "fm", "--epochs", "1", "--batch-size", "3", "--val-fraction", "0", check=True)
+    return split, root / "fm"
 
 
 def copy_dataset(src: Path, dst: Path) -> Path:

@@ -15,21 +15,6 @@ from adlpipe.dataset import schema
 from adlpipe.dataset.loader import STATE_DIM, WindowDataset, Windows, compute_window_stats
 
 
-@pytest.fixture(scope="module")
-def closed_loop_model(ingested: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """(split with every episode in test, a tiny closed-loop FM trained for one epoch on the command stream): the
-    model gives the oracle its format (horizon, rate, statistics)."""
-    root = tmp_path_factory.mktemp("closed_loop")
-    with h5py.File(ingested) as f:
-        names = schema.episode_names(f)
-    train, split = root / "train.json", root / "split.json"
-    train.write_text(json.dumps({"train": names, "test": [], "seed": 0, "test_fraction": 0.0}))
-    split.write_text(json.dumps({"train": [], "test": names, "seed": 0, "test_fraction": 1.0}))
-    run_module("train", "--model", "fm_cnn", "--closed-loop", "--data", ingested, "--split", train, "--out",
-               root / "fm", "--epochs", "1", "--batch-size", "3", "--val-fraction", "0", check=True)
-    return split, root / "fm"
-
-
 def test_the_recorder_publishes_the_arms_command_which_the_measured_tcp_trails(ingested: Path) -> None:
     with h5py.File(ingested) as f:
         for name in schema.episode_names(f):

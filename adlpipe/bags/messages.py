@@ -13,6 +13,7 @@ TF = "tf2_msgs/msg/TFMessage"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
 BOOL = "std_msgs/msg/Bool"
+PATH = "nav_msgs/msg/Path"  # a policy's plan: each waypoint a pose stamped with the time it is for
 
 
 def typestore(ros_version: int):  # noqa: ANN201 - rosbags Typestore
@@ -98,3 +99,13 @@ class MessageFactory:
 
     def boolean(self, value: bool) -> object:
         return self.T[BOOL](data=bool(value))
+
+    def path(self, t_ns: int, frame: str, waypoints: np.ndarray, stamps_ns: list[int]) -> object:
+        """nav_msgs/Path: (N, 3) positions, each PoseStamped at its own time (orientation identity)."""
+        P, Pt, Q = (self.T["geometry_msgs/msg/Pose"], self.T["geometry_msgs/msg/Point"],
+                    self.T["geometry_msgs/msg/Quaternion"])
+        poses = [self.T["geometry_msgs/msg/PoseStamped"](
+            header=self.header(tn, frame), pose=P(position=Pt(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                                                  orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0)))
+            for p, tn in zip(waypoints, stamps_ns, strict=True)]
+        return self.T[PATH](header=self.header(t_ns, frame), poses=poses)

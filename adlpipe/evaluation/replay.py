@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from collections import defaultdict
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import h5py
@@ -13,15 +14,10 @@ import torch
 
 from ..dataset import schema
 from ..dataset.loader import (
-    Normalizer,
     command_series,
-    normalize_state,
-    observation_from_arrays,
     relative_waypoints,
 )
 from ..errors import AdlError
-from ..policy.checkpoint import load_policy
-from ..policy.inference import predict
 from ..runtime import Placement
 from ..stats import median_cell
 
@@ -35,42 +31,75 @@ def replay_one(job: tuple) -> tuple[str, str, str, bool, dict]:
                                             "peak_force_n": round(float(run.peak_force_n), 2)}
 
 
+@dataclass(frozen=True)
+class LoopOptions:
+    """How a closed-loop rollout reaches its policy and what the world does meanwhile: in-process or through a
+    running `adlpipe serve` (server: its ws:// address), the latency the world goes on for while a plan is computed
+    (seconds; None: the measured time of each plan) and whether the arm holds ("sync") or goes on with the previous
+    plan ("async") meanwhile; trial_dir: write each rollout there as a trial bag."""
+
+    server: str | None = None
+    token: str | None = None
+    latency_s: float | None = 0.0
+    execution: str = "sync"
+    trial_dir: str | None = None
+    trial_index: int = 0  # the trial's place in the series (its bag's clock: trials are read in this order)
+
+
 def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     """Closed-loop replay of one scene (a recorded test episode's or a fresh one) with one model, or with the oracle
-    (runs in a pool process: loads the model itself). The oracle's plans are the demonstration's own future
-    waypoints in the model's target format, normalised with its statistics: they take exactly the path a prediction
-    takes from here on."""
+    (runs in a pool process: loads the model itself, or talks to a policy server). The oracle's plans are the
+    demonstration's own future waypoints in the model's target format, normalised with its statistics: they take
+    exactly the path a prediction takes from here on. Through a server, the session is seeded as the in-process
+    generator is: the same plans."""
+    from ..deploy.planner import Observation, Planner
     from ..sim.episode import replay_closed_loop, spec_from_objects
 
-    label, model_dir, checkpoint, sc, steps, execute, seed, placement, oracle, time_limit, ensemble = job
+    label, model_dir, checkpoint, sc, steps, execute, seed, placement, oracle, time_limit, ensemble, *rest = job
+    opts: LoopOptions = rest[0] if rest else LoopOptions()
     torch.set_num_threads(1)
-    policy, ck = load_policy(Path(model_dir) / checkpoint, placement)
-    cfg = policy.cfg
-    norm = Normalizer(ck["stats"])
+    planner = Planner.at(Path(model_dir) / checkpoint, placement, steps)
+    cfg = planner.cfg
     gen = placement.generator(seed)
     state_dim = cfg.state_dim // cfg.n_obs  # 4: tcp and gripper (3: a model trained before the gripper joined)
     series_t, series_p = sc.series(oracle) if oracle is not None else (None, None)
+    client = None
+    if opts.server is not None and oracle is None:
+        from ..deploy.client import PolicyClient
 
-    def predict_normalised(frames: list, elapsed: float) -> torch.Tensor:
+        client = PolicyClient(opts.server, opts.token, seed=seed)
+
+    def observation(frames: list, anchor: np.ndarray) -> Observation:
+        return Observation(rgb=np.stack([f[0] for f in frames]), affordance=sc.affordance.astype(np.float32),
+                           depth=np.stack([f[1] for f in frames]) if cfg.use_depth else None,
+                           state=np.stack([np.append(tcp, grip) for _, _, tcp, grip in frames])[:, :state_dim],
+                           command=anchor, task=sc.task)
+
+    def plan(frames: list, elapsed: float, anchor: np.ndarray) -> np.ndarray:
+        """The next Tp waypoints in the base frame, from the anchor."""
         if oracle is not None:
             now = np.array([[np.interp(elapsed, series_t, series_p[:, d]) for d in range(3)]])
             rel = relative_waypoints(np.array([elapsed]), now, series_t, series_p, cfg.horizon, cfg.rate_hz,
                                      sc.K, sc.T_base_camera)
-            return norm.normalize(torch.from_numpy(rel))
-        image = np.concatenate([observation_from_arrays(rgb, sc.affordance, depth, cfg.image_size, cfg.use_depth)
-                                for rgb, depth, _, _ in frames])
-        state = np.stack([np.append(tcp, grip) for _, _, tcp, grip in frames])[:, :state_dim]
-        obs = (torch.from_numpy(image)[None], normalize_state(state, ck["stats"])[None])
-        return predict(policy, obs, steps, None, gen, placement)
+            offsets = planner.norm.unnormalize(planner.norm.normalize(torch.from_numpy(rel)))[0, :, 2:].numpy()
+            return anchor + np.asarray(offsets, float)
+        obs = observation(frames, anchor)
+        if client is not None:
+            return np.asarray(client.plan(task=obs.task, rgb=obs.rgb, affordance=obs.affordance, depth=obs.depth,
+                                          state=obs.state, command=obs.command)["waypoints"], float)
+        return planner.plan(obs, gen, steps).waypoints
 
-    def plan(frames: list, elapsed: float) -> np.ndarray:
-        """Offsets (Tp, 3) from the anchor, in metres: the unnormalised prediction's x, y, z."""
-        return norm.unnormalize(predict_normalised(frames, elapsed))[0, :, 2:].numpy()
-
+    streams = trial_streams(sc, cfg.image_size) if opts.trial_dir else None
     spec = spec_from_objects(sc.task, sc.object_names, sc.objects, sc.person)
-    run = replay_closed_loop(spec, plan, time_limit * sc.duration_s, cfg.rate_hz, execute, cfg.n_obs, sc.rgb.shape[0],
-                             sc.camera_hz, anchor="measured" if (oracle or cfg.target) == "ee" else "command",
-                             ensemble=ensemble)
+    try:
+        run = replay_closed_loop(spec, plan, time_limit * sc.duration_s, cfg.rate_hz, execute, cfg.n_obs,
+                                 sc.rgb.shape[0], sc.camera_hz,
+                                 anchor="measured" if (oracle or cfg.target) == "ee" else "command",
+                                 ensemble=ensemble, latency_s=opts.latency_s, execution=opts.execution,
+                                 streams=streams)
+    finally:
+        if client is not None:
+            client.close()
     demo_t, demo_p = sc.series("command") if sc.command is not None else sc.series("ee")
     demo_len = path_length(sc.ee_pos)
     demo_at_rate = np.stack([np.interp(np.arange(0, sc.duration_s, 1 / cfg.rate_hz), sc.ee_t, sc.ee_pos[:, d])
@@ -79,9 +108,25 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
             "end_error_cm": round(100 * float(np.linalg.norm(run.command_path[-1] - sc.ee_pos[-1])), 2),
             "path_ratio": round(path_length(run.tcp_path) / demo_len, 3),
             "still_s": round(longest_still(run.command_path, cfg.rate_hz), 2),
-            "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2),
-            **plan_diagnostics(run.command_path, demo_p[0], execute, cfg.rate_hz, demo_t, demo_p)}
+            "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2), "plans": run.plans}
+    if opts.latency_s == 0.0:  # with latency the executed commands are no longer whole chunks of Ta per re-plan
+        diag.update(plan_diagnostics(run.command_path, demo_p[0], execute, cfg.rate_hz, demo_t, demo_p))
+    if streams is not None:
+        from ..deploy.trial_bags import write_trial_bag
+
+        write_trial_bag(streams, Path(opts.trial_dir), label, sc.name, opts.trial_index, run.success,
+                        float(run.peak_force_n))
     return label, sc.name, sc.task, run.success, diag
+
+
+def trial_streams(sc: object, size: int) -> object:
+    """An empty recording of a closed-loop rollout in scene `sc`, filled by the executor."""
+    from ..sim.episode import Streams, spec_from_objects
+
+    st = Streams(sc.task, spec_from_objects(sc.task, sc.object_names, sc.objects, sc.person),  # type: ignore[attr-defined]
+                 sc.rgb.shape[0], sc.rgb.shape[0], np.eye(3), np.eye(4))  # type: ignore[attr-defined]
+    st.affordance = sc.affordance  # type: ignore[attr-defined]
+    return st
 
 
 def median_or_none(values: np.ndarray) -> float | None:
@@ -144,7 +189,7 @@ def longest_still(waypoints: np.ndarray, rate_hz: float) -> float:
 
 def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, scenes: list, formats: list[str],
                 execute: list[int], placement: Placement, time_limit: float = 1.0,
-                ensemble: float | None = None) -> list[tuple]:
+                ensemble: float | None = None, loops: list[tuple[str, LoopOptions]] | None = None) -> list[tuple]:
     """Closed-loop jobs whose plans are each scene's demonstration's own future waypoints, in `model_dir`'s target
     format (horizon, rate, statistics) with the anchor of each format: "command" relative to the last command,
     "ee" relative to the measured tcp (the executor's ceiling for policies trained on each)."""
@@ -157,8 +202,10 @@ def oracle_jobs(model_dir: Path, horizon: int, checkpoint: str, scenes: list, fo
         for ta in execute:
             if ta > horizon:
                 raise AdlError(f"--closed-loop {ta}: {model_dir} predicts only {horizon} waypoints")
-            jobs += [(f"oracle-{fmt}/Ta-{ta}{ENSEMBLED if ensemble is not None else ''}", str(model_dir), checkpoint,
-                      sc, 1, ta, 0, placement, fmt, time_limit, ensemble) for sc in scenes]
+            for suffix, opts in loops or [("", LoopOptions())]:  # the oracle plans in-process, never as a trial
+                jobs += [(f"oracle-{fmt}/Ta-{ta}{ENSEMBLED if ensemble is not None else ''}{suffix}", str(model_dir),
+                          checkpoint, sc, 1, ta, 0, placement, fmt, time_limit, ensemble,
+                          replace(opts, server=None, trial_dir=None)) for sc in scenes]
     return jobs
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -164,6 +165,8 @@ class Streams:
     # The demonstrator's undisturbed path (t, tcp) beside a disturbed command (record --recoveries; else empty)
     reference: list[tuple[float, np.ndarray]] = field(default_factory=list)
     disturbances: int = 0  # how many disturbances the demonstrator recovered from
+    # A policy's plans in a closed-loop trial (t observed, waypoints (Tp, 3) in the base frame, their times after t)
+    plans: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)
 
 
 def camera_intrinsics(model: mujoco.MjModel, width: int, height: int) -> np.ndarray:
@@ -370,24 +373,35 @@ class ClosedLoopRun:
     command_path: np.ndarray  # (P, 3) every executed waypoint (the commands), in order
 
 
-def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.ndarray],
+def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float, np.ndarray], np.ndarray],
                        duration: float, rate_hz: float, execute: int, n_obs: int, image_size: int,
-                       camera_hz: float, anchor: str = "command", ensemble: float | None = None) -> ClosedLoopRun:
+                       camera_hz: float, anchor: str = "command", ensemble: float | None = None,
+                       latency_s: float | None = 0.0, execution: str = "sync",
+                       streams: Streams | None = None) -> ClosedLoopRun:
     """The seed's closed loop: from the last `n_obs` camera frames (rgb, depth, tcp position and gripper joint when
-    rendered) the policy predicts the next waypoints at rate_hz, relative to an anchor (plan(frames, elapsed) ->
-    (Tp, 3) offsets in the base frame); the arm executes the first `execute` of them, and the policy re-plans from
-    the frames of the scene as it is then, until the demonstration's duration has passed. The camera runs at
-    camera_hz throughout, as when recording.
+    rendered) the policy plans the next waypoints at rate_hz (plan(frames, progress, anchor) -> (Tp, 3) waypoints in
+    the base frame, the k-th for k / rate_hz s after the observation; progress: the seconds the arm has spent
+    moving along plans, the clock less any wait for a plan, which the oracle's plans follow); the arm executes the
+    first `execute` of them, and the policy re-plans from the frames of the scene as it is then, until the
+    demonstration's duration has passed. The camera runs at camera_hz throughout, as when recording.
 
-    anchor "command": the offsets start from the last commanded waypoint (where the previous plan left the arm's
+    anchor "command": plans start from the last commanded waypoint (where the previous plan left the arm's
     command, the home pose at first), the policies trained on the command stream; "measured": from the measured tcp
     of the newest frame, which trails the command by ~80 ms (policies trained with --target ee).
 
     ensemble (ACT's temporal ensembling, Zhao et al. 2023, with its weight m): re-plan at every waypoint (execute
     1) and execute the weighted mean of every plan's waypoint for that step, in the base frame, weights exp(-m i)
-    from the oldest plan (i = 0) on."""
+    from the oldest plan (i = 0) on.
+
+    latency_s: the world goes on for this long while a plan is computed (None: as long as plan() took on the wall
+    clock, a server's round trip included). execution "sync": the arm holds its last command meanwhile; "async":
+    it goes on with the previous plan's waypoints after the executed ones (holding the last once they run out), and
+    the new plan is joined at the waypoint for the time it arrives (LeRobot's asynchronous inference). The first
+    plan is always waited for. streams: record the rollout into it (camera, joints, tcp, command, objects, plans)."""
     if ensemble is not None and execute != 1:
         raise ValueError("temporal ensembling re-plans at every waypoint: execute must be 1")
+    if execution not in ("sync", "async"):
+        raise ValueError(f"execution {execution!r}: sync or async")
     task = TASKS[spec.task]
     ctrl, scene = make_scene(spec, image_size, image_size)
     camera = RgbdCamera(ctrl.m, image_size, image_size)
@@ -396,6 +410,7 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.
     next_frame = [0.0]
     tcp_path: list[np.ndarray] = []
     commands: list[np.ndarray] = []
+    record = _StreamRecorder(ctrl, streams, camera_hz) if streams is not None else None
 
     def on_step(t: float) -> None:
         monitor.step()
@@ -405,19 +420,52 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.
             depth[depth > DEPTH_RANGE_M] = np.nan
             frames.append((rgb, depth, ctrl.tcp_pos, ctrl.gripper_pos))
             next_frame[0] += 1.0 / camera_hz
+            if record is not None:
+                record.frame(t, rgb, depth)
+        if record is not None:
+            record.step(t)
+
+    def move(waypoints: np.ndarray, start: np.ndarray, t0: float) -> None:
+        seg = np.vstack([start, waypoints])
+        track_path(ctrl, waypoint_path(seg, len(waypoints) * dt), len(waypoints) * dt, on_step, t_offset=t0)
 
     ctrl.d.ctrl[len(ARM_JOINTS):] = 0.04
     plans, elapsed, dt = 0, 0.0, 1.0 / rate_hz
+    waited = 0.0  # seconds the arm held still waiting for a plan
     last = ctrl.tcp_pos
     pending: dict[int, list[np.ndarray]] = {}  # ensembling: step -> every plan's waypoint for it, oldest first
+    ahead = np.zeros((0, 3))  # async: the previous plan's waypoints after the executed ones
     try:
         on_step(0.0)
         while elapsed < duration - 1e-9:
             stack = [frames[0]] * (n_obs - len(frames)) + list(frames)  # padded at the start, as in training
             base = last if anchor == "command" else stack[-1][2]
-            planned = base + np.asarray(plan(stack, elapsed), float)
+            t_wall = time.perf_counter()
+            planned = np.asarray(plan(stack, elapsed - waited, np.asarray(base, float)), float)
+            wait = time.perf_counter() - t_wall if latency_s is None else latency_s
+            if record is not None:
+                record.plan(elapsed, planned, dt)
+            skip = 0
+            if wait > 0:
+                if execution == "async" and plans > 0:  # go on with the previous plan while this one computes
+                    skip = int(np.ceil(wait / dt - 1e-9))
+                    go_on = np.vstack([ahead, np.repeat(ahead[-1:] if len(ahead) else last[None], skip, 0)])[:skip]
+                    move(go_on, last, elapsed)
+                    commands += list(go_on)
+                    last = go_on[-1]
+                    elapsed += skip * dt
+                else:  # hold the last command until the plan arrives (to the physics step)
+                    wait = max(1, round(wait / ctrl.m.opt.timestep)) * ctrl.m.opt.timestep
+                    track_path(ctrl, _constant(last), wait, on_step, t_offset=elapsed)
+                    elapsed += wait
+                    waited += wait
+                if elapsed >= duration - 1e-9:
+                    break
             if ensemble is None:
-                waypoints = planned[:execute]
+                waypoints = planned[skip:skip + execute]
+                if not len(waypoints):  # the whole plan was for times already gone: hold and plan again
+                    waypoints = last[None]
+                ahead = planned[skip + execute:]
             else:
                 for k, p in enumerate(planned):
                     pending.setdefault(plans + k, []).append(p)
@@ -426,15 +474,63 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float], np.
                 waypoints = (w[:, None] * votes).sum(0, keepdims=True) / w.sum()
             commands += list(waypoints)
             plans += 1
-            seg = np.vstack([last, waypoints])
-            track_path(ctrl, waypoint_path(seg, len(waypoints) * dt), len(waypoints) * dt, on_step, t_offset=elapsed)
+            move(waypoints, last, elapsed)
             elapsed += len(waypoints) * dt
             last = waypoints[-1]
         release_and_settle(ctrl, last, on_step=lambda _t: monitor.step())
     finally:
         camera.close()
+    if record is not None:
+        record.finish(duration=elapsed)
     return ClosedLoopRun(monitor.success(), plans, monitor.checks(), np.array(tcp_path), monitor.max_force,
                          np.array(commands).reshape(-1, 3))
+
+
+def _constant(p: np.ndarray) -> Callable[[float], np.ndarray]:
+    """A path that stays at p (the arm holding its command)."""
+    held = np.array(p, float)
+    return lambda _t: held
+
+
+class _StreamRecorder:
+    """Fills a Streams with a closed-loop rollout at the recorder's rates (joints and command 100 Hz, tcp 50 Hz,
+    camera and objects at the camera's), so that a trial is written as the same kind of bag a demonstration is."""
+
+    def __init__(self, ctrl: object, st: Streams, camera_hz: float, joint_hz: float = 100.0,
+                 tf_hz: float = 50.0) -> None:
+        m = ctrl.m  # type: ignore[attr-defined]
+        self.ctrl, self.st, self.joint_dt, self.tf_dt = ctrl, st, 1.0 / joint_hz, 1.0 / tf_hz
+        self.qadr = [m.jnt_qposadr[m.joint(j).id] for j in st.joint_names]
+        self.vadr = [m.jnt_dofadr[m.joint(j).id] for j in st.joint_names]
+        self.objects = [n for n in st.spec.poses if n != "manikin"]
+        self.next = {"joint": 0.0, "tf": 0.0}
+        st.K = camera_intrinsics(m, st.width, st.height)
+        st.T_base_camera = camera_pose(m, ctrl.d)  # type: ignore[attr-defined]
+        st.action_names = list(COMMAND_NAMES)
+
+    def frame(self, t: float, rgb: np.ndarray, depth: np.ndarray) -> None:
+        m, d = self.ctrl.m, self.ctrl.d  # type: ignore[attr-defined]
+        self.st.camera.append((t, rgb, depth.copy()))
+        self.st.objects.append((t, {n: (d.xpos[m.body(n).id].copy(), d.xquat[m.body(n).id].copy())
+                                    for n in self.objects}))
+
+    def step(self, t: float) -> None:
+        c, d, st = self.ctrl, self.ctrl.d, self.st  # type: ignore[attr-defined]
+        if t + 1e-9 >= self.next["joint"]:
+            st.joints.append((t, d.qpos[self.qadr].copy(), d.qvel[self.vadr].copy()))
+            st.actions.append((t, np.append(c.target, c.gripper_command)))  # type: ignore[attr-defined]
+            self.next["joint"] += self.joint_dt
+        if t + 1e-9 >= self.next["tf"]:
+            q = np.zeros(4)
+            mujoco.mju_mat2Quat(q, d.site_xmat[c.tcp])  # type: ignore[attr-defined]
+            st.ee.append((t, c.tcp_pos, q))  # type: ignore[attr-defined]
+            self.next["tf"] += self.tf_dt
+
+    def plan(self, t: float, waypoints: np.ndarray, dt: float) -> None:
+        self.st.plans.append((t, waypoints.copy(), np.arange(1, len(waypoints) + 1) * dt))
+
+    def finish(self, duration: float) -> None:
+        self.st.duration = duration
 
 
 def spec_from_objects(task: str, names: list[str], poses: np.ndarray,
