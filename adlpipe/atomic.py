@@ -9,11 +9,60 @@ from __future__ import annotations
 import errno
 import json
 import os
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from .errors import check_interrupted, note_committed
+from .errors import AdlError, check_interrupted, note_committed
+
+SYSTEM_TREES = (Path("/proc"), Path("/dev"), Path("/sys"))  # never an output, whatever link leads there
+KINDS = {stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFIFO: "a FIFO",
+         stat.S_IFSOCK: "a socket"}
+
+
+def special_output(path: Path | str) -> str | None:
+    """Why `path` cannot be an output (a device node, a FIFO, a socket, or a link into /proc, /dev or /sys: the
+    atomic rename would replace a device with a file, and a FIFO blocks the writer), or None for a regular file, a
+    folder or a new name."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode  # follows links: what the output would really be
+    except (FileNotFoundError, NotADirectoryError):
+        mode = None
+    except OSError as exc:
+        return f"cannot be examined ({exc.strerror})"
+    if mode is not None and stat.S_IFMT(mode) in KINDS:
+        return f"is {KINDS[stat.S_IFMT(mode)]}"
+    for hop in _link_chain(path):
+        for tree in SYSTEM_TREES:
+            if hop == tree or tree in hop.parents:
+                return f"leads into {tree} ({hop})"
+    return None
+
+
+def _link_chain(path: Path) -> list[Path]:
+    """The absolute path and every place its links point to, hop by hop (realpath alone would resolve /proc's
+    magic fd links to wherever the fd points, hiding that the output goes through /proc)."""
+    chain = [Path(os.path.abspath(path))]
+    for _ in range(40):
+        p = chain[-1]
+        resolved_parent = Path(os.path.realpath(p.parent))
+        for tree in SYSTEM_TREES:  # a folder link into /proc, e.g. out/ -> /proc/self/fd
+            if resolved_parent == tree or tree in resolved_parent.parents:
+                return [*chain, resolved_parent / p.name]
+        if not os.path.islink(p):
+            break
+        chain.append(Path(os.path.abspath(resolved_parent / os.readlink(p))))
+    return chain
+
+
+def refuse_special_outputs(*paths: Path | str) -> None:
+    """One line before any work when an output is not a regular file or a new name (special_output)."""
+    for path in paths:
+        why = special_output(path)
+        if why is not None:
+            raise AdlError(f"{path}: {why}, not a regular file; outputs are regular files, give another path")
 
 
 def temp_name(path: Path) -> Path:
@@ -25,6 +74,7 @@ def temp_name(path: Path) -> Path:
 def atomic_path(path: Path | str) -> Iterator[Path]:
     """Yield a temp path to write to; on success it replaces `path`, on an exception it is removed."""
     path = Path(path)
+    refuse_special_outputs(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_name(path)
     try:
@@ -56,6 +106,7 @@ def write_json_atomic(path: Path | str, obj: object) -> None:
 
 def check_outputs(*paths: Path | str) -> None:
     """Fail before the work, not after it: every output must be a file path whose folder can be written."""
+    refuse_special_outputs(*paths)
     for path in map(Path, paths):
         if path.is_dir():
             raise IsADirectoryError(errno.EISDIR, "is a folder; give a file path", str(path))

@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import NoReturn
 
+from .atomic import refuse_special_outputs
 from .errors import AdlError
 
 
@@ -37,6 +38,7 @@ class Parser(argparse.ArgumentParser):
             inputs, outputs, implied, writes_datasets = self._io
             ins = [p for d in inputs for p in _paths(getattr(parsed, d, None))]
             outs = [p for d in outputs for p in _paths(getattr(parsed, d, None))]
+            refuse_special_outputs(*outs)  # first: reading a FIFO to check it would block
             refuse_overwriting_inputs(outs, ins + list(implied(parsed) if implied else []))
             if not writes_datasets:
                 refuse_overwriting_datasets(outs)

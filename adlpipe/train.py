@@ -50,7 +50,7 @@ from .policy.nets.resnet import POOLS
 from .policy.optim import WARMUP_STEPS
 from .runtime import add_device_args, barrier, process_group, resolve_device
 from .training.data import stream_sizes
-from .training.loop import train
+from .training.loop import check_resume_dir, train
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -178,6 +178,10 @@ def main(argv: list[str] | None = None) -> int:
     cfg = model_config(args)
     split = args.split or args.data.with_name("split.json")
     lr = args.lr if args.lr is not None else PRESET_LR[args.config]
+    if args.resume_dir is not None and args.resume_dir.resolve() == out.resolve():
+        args.resume_dir = None  # the default: checkpoints in --out
+    if args.resume_dir is not None:
+        check_resume_dir(args.resume_dir, out, [args.data, split, *([args.log] if args.log else [])])
     with process_group(device) as ranks:  # under torchrun: one process per GPU (or CPU share), rank 0 writes
         with exclusive(out) if ranks.main else contextlib.nullcontext():
             if args.restart and ranks.main:

@@ -3,6 +3,7 @@ run resumes from; the per-epoch log; and the finished run's files."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import os
@@ -191,6 +192,9 @@ def resume(last: Path, cfg: ModelConfig, hparams: dict, stats: dict, policy: Pol
     ck = load_checkpoint(last)
     same_data = same_stats(ck.get("stats", stats), stats)
     other = ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams or not same_data
+    if other and replace_stale and ck.get("config", {}).get("model") != cfg.model:
+        raise AdlError(f"{last}: a checkpoint of another model ({ck.get('config', {}).get('model')}, not "
+                       f"{cfg.model}); give each training a resume folder of its own, or use --restart")
     if other and replace_stale:
         print(f"{last}: a checkpoint of other settings or data; training from scratch", file=sys.stderr)
         for name in ("last.pt", "best.pt"):
@@ -222,7 +226,31 @@ def publish(final: dict, work: Path, out: Path) -> None:
     if (work / "checkpoints").exists():
         shutil.rmtree(out / "checkpoints", ignore_errors=True)
         shutil.move(work / "checkpoints", out / "checkpoints")
-    shutil.rmtree(work)
+    (work / "last.pt").unlink(missing_ok=True)  # file by file: only what training wrote there, never the folder's rest
+    with contextlib.suppress(OSError):
+        work.rmdir()  # only if nothing else is left in it
+
+
+RESUME_FILES = {"last.pt", "best.pt", "checkpoints"}
+
+
+def check_resume_dir(resume_dir: Path, out: Path, inputs: list[Path]) -> None:
+    """One line before training when a resume folder holds anything training does not write there (a user's file,
+    the dataset, the output): a finished run removes what it wrote, and only that."""
+    rd = resume_dir.resolve()
+    for what, p in [("the output", out), *(("an input", q) for q in inputs)]:
+        q = Path(p).resolve()
+        if q == rd or rd in q.parents:
+            raise AdlError(f"--resume-dir {resume_dir}: holds {what} ({p}); give training a folder of its own")
+    if not rd.is_dir():
+        return
+    for entry in sorted(rd.iterdir()):
+        ours = entry.name in RESUME_FILES or (entry.name.startswith(".") and ".pt.tmp" in entry.name)
+        if entry.name == "checkpoints" and entry.is_dir():
+            ours = all(c.name.startswith("step_") and c.suffix == ".pt" for c in entry.iterdir())
+        if not ours:
+            raise AdlError(f"--resume-dir {resume_dir}: holds {entry.name}, which training did not write; give "
+                           "training a folder of its own (a finished run removes what it wrote there)")
 
 
 def write_log(log_csv: Path | None, history: list[dict]) -> None:
