@@ -24,6 +24,7 @@ from .atomic import atomic_path, write_text_atomic
 from .cli import Parser
 from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import claims
+from .evaluation.latency import latency_lines, serve_lines
 from .evaluation.outcomes import breakdown_lines
 from .evaluation.person import motion_training_lines, moving_person_lines
 from .evaluation.recoveries import OPEN_LOOP_OF, recording_line, recoveries_lines
@@ -71,6 +72,9 @@ CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_l
                      "metrics/replay_moving_recoveries_details.json": "replay_moving_recoveries_details.json",
                      "metrics/recoveries_recording.json": "recoveries_recording.json",
                      "reports/report.md": "report.md", "reports/history.md": "history.md",
+                     # what a plan's latency costs (replay --latency --execution), the person still and moving
+                     "metrics/replay_latency_still_details.json": "replay_latency_still_details.json",
+                     "metrics/replay_latency_moving_details.json": "replay_latency_moving_details.json",
                      # the open-loop reference: the default pipeline's replay of the same scenes in that run
                      "../../metrics/replay_details.json": "replay_open_details.json"}
 # What pipelines/moving_person keeps (-> results/moving_person): the trio trained with the person moving, replayed
@@ -175,6 +179,12 @@ def tables(results: Path) -> dict[str, str]:
             out["moving-trained"] = motion_training_lines(
                 _load(moving[0]), _load(trained / "replay_moving_details.json"), ol,
                 _load(trained / "replay_still_details.json"))
+        latency = [closed / f"replay_latency_{w}_details.json" for w in ("still", "moving")]
+        if latency[0].exists():
+            out["latency"] = latency_lines(_load(latency[0]), _load(latency[1]) if latency[1].exists() else None)
+    serve = results / "deploy" / "serve_bench.json"
+    if serve.exists():
+        out["serve-bench"] = serve_lines(_load(serve))
     out["table2"] = table2_lines(results.parent / "pipelines")  # the benchmark pipelines' committed results
     return {k: "\n".join(v) for k, v in out.items() if v}
 
