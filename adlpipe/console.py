@@ -17,8 +17,16 @@ STAGES = ("record", "ingest", "split", "train", "evaluate", "replay", "report", 
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
-    if not args or args[0] in ("-h", "--help"):
-        print(f"usage: adlpipe <stage> [options]  (each stage: adlpipe <stage> --help)\nstages: {', '.join(STAGES)}")
+    if args[:1] in (["--version"], ["-V"]):
+        from . import __version__
+
+        print(f"adlpipe {__version__}")
+        return 0
+    if args[:1] == ["help"] and len(args) > 1:  # adlpipe help train == adlpipe train --help
+        args = [args[1], "--help"]
+    if not args or args[0] in ("-h", "--help", "help"):
+        print(f"usage: adlpipe <stage> [options]  (each stage: adlpipe <stage> --help; adlpipe --version)\n"
+              f"stages: {', '.join(STAGES)}")
         return 0
     if args[0] not in STAGES:
         print(f"adlpipe: error: {args[0]!r} is not a stage (one of {', '.join(STAGES)})", file=sys.stderr)

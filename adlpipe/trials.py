@@ -17,6 +17,7 @@ the others' k-th: run them alternating, as the suggested next policy does. Trial
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -33,10 +34,23 @@ def latencies(args: argparse.Namespace) -> dict[str, float | None]:
     for item in args.latency or []:
         name, _, ms = item.partition("=")
         try:
-            out[name] = float(ms)
+            value = float(ms)
         except ValueError:
             raise AdlError(f"--latency {item!r}: expected POLICY=MS, e.g. fm_cnn=3.5") from None
+        if not name.strip() or not math.isfinite(value) or value < 0:
+            raise AdlError(f"--latency {item!r}: expected POLICY=MS with a policy name and a finite ms >= 0")
+        out[name.strip()] = value
     return out
+
+
+def check_names(args: argparse.Namespace, trials: list, latency: dict[str, float | None]) -> None:
+    """--policies without empty names, --latency only for policies under trial."""
+    if args.policies and not all(p.strip() for p in args.policies):
+        raise AdlError("--policies: an empty policy name")
+    known = set(args.policies or []) | {t.policy for t in trials}
+    unknown = [p for p in (item.partition("=")[0].strip() for item in args.latency or []) if p not in known]
+    if unknown:
+        raise AdlError(f"--latency {unknown[0]}: no such policy among the trials ({', '.join(sorted(known))})")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,6 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     if not trials:
         raise AdlError(f"{', '.join(map(str, args.inputs))}: no trials")
     latency, rule = latencies(args), Rule(args.margin, args.alpha)
+    check_names(args, trials, latency)
     decision: dict = {}
     nxt: str | None = None
     for i in range(1, len(trials) + 1):

@@ -66,3 +66,22 @@ def test_another_models_checkpoint_in_a_resume_folder_is_refused(data: tuple[Pat
     assert (resume / "last.pt").exists()
     assert train(data, "--out", tmp_path / "fm", "--resume-dir", resume, "--restart").returncode == 0
     assert json.loads((tmp_path / "fm" / "metrics.json").read_text())["epochs"] == 1
+
+
+@pytest.mark.parametrize("content", [[1, 2, 3], "a tensor"])
+def test_a_last_checkpoint_that_is_not_one_is_one_line(data: tuple[Path, Path], tmp_path: Path,
+                                                       content: object) -> None:
+    import torch
+
+    (tmp_path / "m").mkdir()
+    torch.save(torch.zeros(3) if content == "a tensor" else content, tmp_path / "m" / "last.pt")
+    err = one_line_error(train(data, "--out", tmp_path / "m"))
+    assert "last.pt: not a training checkpoint adlpipe wrote" in err
+
+
+def test_the_console_says_its_version_and_helps() -> None:
+    from adlpipe import __version__
+
+    assert run_module("console", "--version", check=True).stdout.strip() == f"adlpipe {__version__}"
+    assert "stages: record, ingest" in run_module("console", "help", check=True).stdout
+    assert "usage: python -m adlpipe.train" in run_module("console", "help", "train", check=True).stdout

@@ -58,6 +58,8 @@ def test_a_policy_that_hurts_the_person_is_out(tmp_path: Path) -> None:
     ("policy,ok\na,1\n", "no column success"),
     ("policy,success\na,maybe\n", "t.csv:2: success 'maybe' is not one of"),
     ("policy,success,force_n\na,1,-3\n", "t.csv:2: force_n -3.0 is outside"),
+    ("trial,policy,success\n1,a,1\n1,b,0\n", "t.csv:3: trial 1 again (first on line 2)"),
+    ("trial,policy,success\n1,a,1\n,b,0\n", "t.csv:3: empty trial number"),
 ])
 def test_a_bad_trials_csv_is_one_line_naming_the_place(tmp_path: Path, content: str, expect: str) -> None:
     (tmp_path / "t.csv").write_text(content)
@@ -115,3 +117,55 @@ def test_a_bag_without_an_outcome_is_named(tmp_path: Path, trial_bags: list[Path
     st = record_demo("wipe the nose", np.random.default_rng(1), 32, 32, camera_hz=1.0)
     plain = write_episode_bag(st, tmp_path / "plain.mcap", "mcap", "raw", "32FC1", 0)
     assert "plain.mcap: no /adl/outcome topic" in one_line_error(run_module("trials", trial_bags[0], plain))
+
+
+def test_a_byte_order_mark_does_not_hide_the_first_column(tmp_path: Path) -> None:
+    (tmp_path / "t.csv").write_bytes(b"\xef\xbb\xbftrial,policy,success\n2,b,0\n1,a,1\n")
+    out = run_module("trials", tmp_path / "t.csv", check=True).stdout
+    assert out.splitlines()[0].startswith("trial 1 (a: success)")  # ordered by the trial column, not the rows
+
+
+@pytest.mark.parametrize(("args", "expect"), [
+    (["--latency", "a=nan"], "finite ms >= 0"),
+    (["--latency", "a=-1"], "finite ms >= 0"),
+    (["--latency", "a=inf"], "finite ms >= 0"),
+    (["--latency", "=3"], "with a policy name"),
+    (["--latency", "ghost=3"], "--latency ghost: no such policy among the trials"),
+    (["--policies", "a", ""], "--policies: an empty policy name"),
+])
+def test_bad_latencies_and_policy_names_are_refused(tmp_path: Path, args: list[str], expect: str) -> None:
+    (tmp_path / "t.csv").write_text("policy,success\na,1\nb,0\n")
+    assert expect in one_line_error(run_module("trials", tmp_path / "t.csv", *args))
+
+
+def test_the_same_file_twice_a_fifo_and_a_device_are_refused(tmp_path: Path) -> None:
+    import os
+
+    (tmp_path / "t.csv").write_text("policy,success\na,1\nb,0\n")
+    assert "given twice" in one_line_error(run_module("trials", tmp_path / "t.csv", tmp_path / "t.csv"))
+    os.mkfifo(tmp_path / "f.csv")
+    assert "f.csv: not a regular file" in one_line_error(run_module("trials", tmp_path / "f.csv", timeout=60))
+    (tmp_path / "z.csv").symlink_to("/dev/zero")
+    assert "z.csv: not a regular file" in one_line_error(run_module("trials", tmp_path / "z.csv", timeout=60))
+
+
+@pytest.mark.parametrize(("outcome", "expect"), [
+    ([("/adl/policy", M.STRING, "a"), ("/adl/outcome", M.STRING, "true")], None),
+    ([("/adl/outcome", M.STRING, json.dumps({"policy": ["a"], "success": True}))], "is a list, not a name"),
+    ([("/adl/policy", M.BOOL, True), ("/adl/outcome", M.BOOL, True)], "bool, not a std_msgs/String"),
+    ([("/adl/policy", M.STRING, "a"), ("/adl/outcome", M.BOOL, True), ("/adl/outcome", M.BOOL, False)],
+     "/adl/outcome: 2 messages; a trial bag holds one trial"),
+    ([("/adl/policy", M.STRING, "a"), ("/adl/outcome", M.STRING, "[" * 5000 + "]" * 5000)],
+     "... (10000 characters) is not one of"),
+])
+def test_trial_bag_outcomes_read_by_one_schema(tmp_path: Path, trial_bags: list[Path], outcome: list,
+                                               expect: str | None) -> None:
+    from adlpipe.sim.episode import record_demo
+
+    st = record_demo("wipe the nose", np.random.default_rng(1), 32, 32, camera_hz=1.0)
+    bag = write_episode_bag(st, tmp_path / "t.mcap", "mcap", "raw", "32FC1", 0, outcome=outcome)
+    proc = run_module("trials", bag)
+    if expect is None:
+        assert proc.returncode == 0 and "trial 1 (a: success)" in proc.stdout, proc.stderr
+    else:
+        assert expect in one_line_error(proc)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import json
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,7 +41,8 @@ def _flag(text: str, where: str) -> bool:
     t = str(text).strip().lower()
     if t in TRUE or t in FALSE:
         return t in TRUE
-    raise AdlError(f"{where}: success {text!r} is not one of 1/0, true/false, yes/no")
+    shown = repr(str(text)) if len(str(text)) <= 40 else repr(str(text)[:40]) + f" ... ({len(str(text))} characters)"
+    raise AdlError(f"{where}: success {shown} is not one of 1/0, true/false, yes/no")
 
 
 def _number(text: object, field: str, where: str, lo: float, hi: float) -> float | None:
@@ -55,11 +57,27 @@ def _number(text: object, field: str, where: str, lo: float, hi: float) -> float
     return x
 
 
-def read_csv(path: Path) -> list[Trial]:
+MAX_CSV_BYTES = 64 << 20  # about a million trials: more is not a trials file
+
+
+def _regular(path: Path, what: str) -> None:
+    """A file to read must be a regular file (a bag may be a rosbag2 folder): a FIFO would block, a device never end."""
     try:
-        with open(path, newline="") as f:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        raise AdlError(f"{path}: cannot read it ({exc.strerror})") from None
+    if not (stat.S_ISREG(mode) or (what == "bag" and stat.S_ISDIR(mode))):
+        raise AdlError(f"{path}: not a regular file; a trials {what} is a file")
+
+
+def read_csv(path: Path) -> list[Trial]:
+    _regular(path, "CSV")
+    if path.stat().st_size > MAX_CSV_BYTES:
+        raise AdlError(f"{path}: {path.stat().st_size} bytes, over the {MAX_CSV_BYTES >> 20} MiB a trials CSV may be")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # a byte-order mark is not part of the first name
             reader = csv.DictReader(f)
-            header, rows = list(reader.fieldnames or []), list(reader)
+            header, rows = [h.strip() for h in reader.fieldnames or []], list(reader)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise AdlError(f"{path}: cannot read it as a CSV of trials ({exc})") from None
     missing = [c for c in ("policy", "success") if c not in header]
@@ -67,11 +85,20 @@ def read_csv(path: Path) -> list[Trial]:
         raise AdlError(f"{path}: no column {', '.join(missing)} (a trials CSV needs policy and success; "
                        f"it has {', '.join(header) or 'none'})")
     trials = []
-    for i, row in enumerate(rows, start=2):
+    seen: dict[float, int] = {}
+    for i, raw in enumerate(rows, start=2):
+        row = {(k or "").strip(): v for k, v in raw.items()}
         where = f"{path}:{i}"
         if not (row.get("policy") or "").strip():
             raise AdlError(f"{where}: empty policy")
-        order = _number(row.get("trial"), "trial", where, 0, 1e12) if "trial" in row else None
+        order = _number(row.get("trial"), "trial", where, 0, 1e12) if "trial" in header else None
+        if "trial" in header:
+            if order is None:
+                raise AdlError(f"{where}: empty trial number (the column orders the trials: fill it on every row, "
+                               "or leave the column out to keep the row order)")
+            if order in seen:
+                raise AdlError(f"{where}: trial {order:g} again (first on line {seen[order]})")
+            seen[order] = i
         trials.append((order if order is not None else i, Trial(
             row["policy"].strip(), _flag(row["success"], where), _number(row.get("force_n"), "force_n", where, 0, 1e6),
             _number(row.get("progress"), "progress", where, 0, 1), where)))
@@ -80,34 +107,51 @@ def read_csv(path: Path) -> list[Trial]:
 
 def read_bag(path: Path) -> tuple[int, Trial]:
     """(the log time of its outcome in ns: when the trial ended, its trial)."""
+    _regular(path, "bag")
     src = BagSource(path)
     topics = src.topics()
     if OUTCOME not in topics:
         raise AdlError(f"{path}: no {OUTCOME} topic: a trial bag carries its outcome there "
                        "(std_msgs/String JSON or std_msgs/Bool)")
-    outcome, policy, ended = None, None, 0
+    outcomes, policies, ended = [], [], 0
     for topic, t, decode in src.messages([OUTCOME] + ([POLICY] if POLICY in topics else [])):
         msg: Any = decode()
-        data = msg.data
+        data = getattr(msg, "data", None)
         if topic == POLICY:
-            policy = str(data).strip()
+            if not isinstance(data, str):
+                raise AdlError(f"{path} {POLICY}: {type(data).__name__}, not a std_msgs/String naming the policy")
+            policies.append(data.strip())
         else:
-            outcome, ended = data, t
+            if not isinstance(data, str | bool):
+                raise AdlError(f"{path} {OUTCOME}: a {type(msg).__name__} holding {type(data).__name__}; the outcome "
+                               "is a std_msgs/String (JSON, or true/false) or a std_msgs/Bool")
+            outcomes.append(data)
+            ended = t
     where = f"{path} {OUTCOME}"
-    if outcome is None:
+    if not outcomes:
         raise AdlError(f"{where}: no message")
+    if len(outcomes) > 1 or len(policies) > 1:
+        topic, n = (OUTCOME, len(outcomes)) if len(outcomes) > 1 else (POLICY, len(policies))
+        raise AdlError(f"{path} {topic}: {n} messages; a trial bag holds one trial")
+    outcome, policy = outcomes[0], (policies[0] if policies else None)
     force = progress = None
     if isinstance(outcome, bool):
         success = outcome
     else:
         try:
             doc = json.loads(outcome)
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, RecursionError):
             doc = {"success": outcome}
+        if isinstance(doc, bool | int) and not isinstance(doc, dict):  # "true", "false", "1", "0"
+            doc = {"success": str(doc).lower()}
         if not isinstance(doc, dict) or "success" not in doc:
-            raise AdlError(f"{where}: {outcome!r} holds no success (a JSON object with 'success', or true/false)")
+            raise AdlError(f"{where}: {outcome[:80]!r} holds no success (a JSON object with 'success', or "
+                           "true/false)")
         success = _flag(doc["success"], where)
-        policy = str(doc.get("policy", policy) or "").strip() or policy
+        named = doc.get("policy", policy)
+        if named is not None and not isinstance(named, str):
+            raise AdlError(f"{where}: policy {str(named)[:40]!r} is a {type(named).__name__}, not a name")
+        policy = (named or "").strip() or policy
         force = _number(doc.get("force_n"), "force_n", where, 0, 1e6)
         progress = _number(doc.get("progress"), "progress", where, 0, 1)
     if not policy:
@@ -120,7 +164,12 @@ def read_trials(paths: list[Path]) -> list[Trial]:
     """Every trial of the CSVs (in their order) and of the bags (by recording time), CSVs first."""
     trials: list[Trial] = []
     bags = []
+    seen: dict[Path, Path] = {}
     for p in paths:
+        real = Path(p).resolve()
+        if real in seen:
+            raise AdlError(f"{p}: given twice (as {seen[real]} too); each trial counts once")
+        seen[real] = Path(p)
         if p.suffix.lower() == ".csv":
             trials += read_csv(p)
         else:

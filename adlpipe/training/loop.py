@@ -190,6 +190,11 @@ def resume(last: Path, cfg: ModelConfig, hparams: dict, stats: dict, policy: Pol
     if not last.exists():
         return [], 0
     ck = load_checkpoint(last)
+    need = {"model", "ema", "ema_step", "optimizer", "scheduler", "epoch", "history"}
+    if not isinstance(ck, dict) or not need <= set(ck):
+        raise AdlError(f"{last}: not a training checkpoint adlpipe wrote (it holds "
+                       f"{type(ck).__name__ if not isinstance(ck, dict) else ', '.join(sorted(map(str, ck))[:4])}); "
+                       "remove it or use --restart")
     same_data = same_stats(ck.get("stats", stats), stats)
     other = ck.get("config") != cfg.to_dict() or ck.get("hparams") != hparams or not same_data
     if other and replace_stale and ck.get("config", {}).get("model") != cfg.model:
