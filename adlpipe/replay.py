@@ -151,8 +151,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--latency", nargs="+", type=latency_value, metavar="MS",
                    help="closed loop: the world goes on for MS milliseconds while each plan is computed (a number, or "
                    "'measured': each plan's own wall-clock time, a server's round trip included); several values are "
-                   "a sweep, each a row labelled lat-MS-EXECUTION (lat-0ms: one row; default: none, the world waits for "
-                   "every plan)")
+                   "a sweep, each a row labelled lat-MS-EXECUTION (lat-0ms: one row; default: none, the world waits "
+                   "for every plan)")
     p.add_argument("--execution", nargs="+", choices=["sync", "async"], default=["sync"],
                    help="closed loop with --latency: the arm holds its last command while a plan is computed (sync, "
                    "default) or goes on with the previous plan's later waypoints (async, LeRobot's asynchronous "
