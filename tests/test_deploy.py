@@ -369,3 +369,35 @@ def test_the_latency_table_pairs_each_row_with_no_latency_on_the_same_scenes() -
     assert rows[("160ms", "sync")]["FM-1"] == "20 [6, 51] (-40.0, p = 0.12); 1 over 20 N"
     lines = latency_lines(details, None)
     assert lines[2].startswith("| 0 ms | - |") and lines[3].startswith("| 160 ms | holds its last command |")
+
+
+def test_eight_robots_at_once_are_each_served_their_own_plans(served, ingested: Path) -> None:
+    """8 clients, each its own connection and seed, 20 plans each at once: every reply answers its own request,
+    and a client's plans are the ones it would get alone (the server keeps each session's noise apart)."""
+    import threading
+
+    _, url, token, log, proc = served
+    obs = episode_observation(ingested)
+    req = {"task": obs.task, "rgb": obs.rgb, "affordance": obs.affordance, "state": obs.state, "command": obs.command}
+    got: dict[int, list[np.ndarray]] = {}
+    errors: list[str] = []
+
+    def robot(i: int) -> None:
+        try:
+            with PolicyClient(url, token=token, seed=100 + i) as c:
+                got[i] = [c.plan(**req)["waypoints"] for _ in range(20)]
+        except Exception as exc:  # noqa: BLE001 - collected and asserted below
+            errors.append(repr(exc))
+
+    threads = [threading.Thread(target=robot, args=(i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert not errors and sorted(got) == list(range(8)) and all(len(v) == 20 for v in got.values())
+    with PolicyClient(url, token=token, seed=103) as alone:  # robot 3's session again, on its own
+        again = [alone.plan(**req)["waypoints"] for _ in range(20)]
+    for a, b in zip(again, got[3], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(got[3][0], got[4][0])
+    assert proc.poll() is None
