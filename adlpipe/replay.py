@@ -411,21 +411,22 @@ def main(argv: list[str] | None = None) -> int:
                 args, split, tasks, names, checkpoint, placement, journal)
         where = f"{len(scenes) // len(tasks)} fresh scenes per task (seed {args.scene_seed}), until decided"
     else:
-        if args.scenes:
-            scenes = fresh_scenes(args, test_tasks(args.data, names), names)
-            person = ", the person moving" if args.moving_person else ""
-            where = f"{args.scenes} fresh scenes per task (seed {args.scene_seed}{person})"
-        else:
-            eps, rates = recorded_episodes(args, names)
-            scenes = (closed_loop_scenes(args.data, eps, rates) if args.closed_loop
-                      else [from_episode(ep) for ep in eps])
-            where = "test split"
-        if args.closed_loop:
-            worker, jobs = closed_loop_one, closed_loop_jobs(args, scenes, checkpoint, placement)
-        else:
-            worker = replay_one
-            jobs, trajs = open_loop_jobs(args, split, scenes, None if args.scenes else names, checkpoint, placement)
-        with journal:
+        with journal:  # a clean refusal while building the jobs (a bad checkpoint, a foreign task) leaves none
+            if args.scenes:
+                scenes = fresh_scenes(args, test_tasks(args.data, names), names)
+                person = ", the person moving" if args.moving_person else ""
+                where = f"{args.scenes} fresh scenes per task (seed {args.scene_seed}{person})"
+            else:
+                eps, rates = recorded_episodes(args, names)
+                scenes = (closed_loop_scenes(args.data, eps, rates) if args.closed_loop
+                          else [from_episode(ep) for ep in eps])
+                where = "test split"
+            if args.closed_loop:
+                worker, jobs = closed_loop_one, closed_loop_jobs(args, scenes, checkpoint, placement)
+            else:
+                worker = replay_one
+                jobs, trajs = open_loop_jobs(args, split, scenes, None if args.scenes else names, checkpoint,
+                                             placement)
             wins, per_episode, diagnostics = run_jobs(worker, jobs, args.workers, placement, journal)
     result = success_summary(wins)
     strips = {} if args.closed_loop else failure_strips(args.failures, scenes, trajs, diagnostics, per_episode,

@@ -223,6 +223,22 @@ def test_evaluate_failing_cleanly_leaves_no_journal(capsys: pytest.CaptureFixtur
     assert not list(tmp_path.glob(".*journal")) and not details.exists()
 
 
+@pytest.mark.parametrize("loop", [[], ["--closed-loop", "8"]])
+def test_replay_failing_cleanly_leaves_no_journal(capsys: pytest.CaptureFixture, world: dict, tmp_path: Path,
+                                                  loop: list[str]) -> None:
+    """A checkpoint that is not one: replay refuses it in one line, open or closed loop, and leaves no journal."""
+    bad = tmp_path / "bad_model"
+    bad.mkdir()
+    for name in ("best.pt", "model.pt"):
+        (bad / name).write_bytes(b"not a checkpoint")
+    details = tmp_path / "d.json"
+    line = one_line_error(run_stage(capsys, "replay", "--models", bad, "--data", world["data"], "--split",
+                                    world["split"], "--metrics", tmp_path / "m.json", "--details", details,
+                                    "--table", tmp_path / "t.md", *loop))
+    assert "bad_model" in line and "not a loadable adlpipe checkpoint" in line
+    assert not list(tmp_path.glob(".*journal")) and not details.exists()
+
+
 def test_a_state_message_left_out_for_nan_is_not_stored_as_nan(tmp_path: Path) -> None:
     """A state topic whose message at the first frame held NaN (and was left out) leaves that frame without a
     state: the ingest says so in one line, naming the frame and why, instead of storing NaN (it did before)."""
