@@ -12,7 +12,8 @@ def _interrupted_while_starting(_signum: int, _frame: object) -> None:
     os._exit(130)
 
 
-if sys.argv[:1] == ["-m"]:
-    # Started as `python -m adlpipe.<stage>`: a Ctrl-C while torch, cv2 and mujoco import is a clean exit 130, not a
-    # traceback. The stage's run_cli puts Python's KeyboardInterrupt handling back once the imports are done.
+if sys.argv[:1] == ["-m"] or os.path.basename(sys.argv[0] if sys.argv else "") == "adlpipe":
+    # Started as `python -m adlpipe.<stage>` or as the `adlpipe` console command: a Ctrl-C while torch, cv2 and
+    # mujoco import is a clean exit 130, not a traceback. The stage's run_cli puts Python's KeyboardInterrupt
+    # handling back once the imports are done.
     signal.signal(signal.SIGINT, _interrupted_while_starting)

@@ -78,10 +78,3 @@ def test_a_last_checkpoint_that_is_not_one_is_one_line(data: tuple[Path, Path], 
     err = one_line_error(train(data, "--out", tmp_path / "m"))
     assert "last.pt: not a training checkpoint adlpipe wrote" in err
 
-
-def test_the_console_says_its_version_and_helps() -> None:
-    from adlpipe import __version__
-
-    assert run_module("console", "--version", check=True).stdout.strip() == f"adlpipe {__version__}"
-    assert "stages: record, ingest" in run_module("console", "help", check=True).stdout
-    assert "usage: python -m adlpipe.train" in run_module("console", "help", "train", check=True).stdout
