@@ -25,7 +25,7 @@ from .atomic import check_outputs, json_text, write_all_atomic
 from .cli import Parser, float_range
 from .errors import AdlError, read_json_object, run_cli
 from .evaluation.decision import Rule, policies_of
-from .evaluation.trials import decide_trials, read_trials
+from .evaluation.trials import TrialSeries, read_trials
 
 
 def latencies(args: argparse.Namespace) -> dict[str, float | None]:
@@ -76,9 +76,10 @@ def main(argv: list[str] | None = None) -> int:
     check_names(args, trials, latency)
     decision: dict = {}
     nxt: str | None = None
-    for i in range(1, len(trials) + 1):
-        decision, nxt = decide_trials(trials[:i], latency, rule, args.policies)
-        t = trials[i - 1]
+    series = TrialSeries(latency, rule, args.policies)  # updated trial by trial: linear in the trials
+    for i, t in enumerate(trials, start=1):
+        series.add(t)
+        decision, nxt = series.decision()
         what = (f"stop: {decision['recommended']}" if nxt is None else f"continue: run {nxt} next")
         print(f"trial {i} ({t.policy}: {'success' if t.success else 'failure'}"
               + (f", {t.force_n:.1f} N" if t.force_n is not None else "") + f"): {what}")

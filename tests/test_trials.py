@@ -169,3 +169,37 @@ def test_trial_bag_outcomes_read_by_one_schema(tmp_path: Path, trial_bags: list[
         assert proc.returncode == 0 and "trial 1 (a: success)" in proc.stdout, proc.stderr
     else:
         assert expect in one_line_error(proc)
+
+
+def test_the_rule_trial_by_trial_is_the_rule_on_all_trials_so_far() -> None:
+    """TrialSeries (linear in the trials) against decide() rebuilt from scratch after every trial (the quadratic
+    way): the same decision, lines and next policy at every trial, a third policy joining mid-series included."""
+    from adlpipe.evaluation.decision import Rule, decide
+    from adlpipe.evaluation.trials import Trial, TrialSeries
+
+    rng = np.random.default_rng(3)
+    rates = {"a": 0.75, "b": 0.55, "c": 0.45}  # decided after 576 trials, c there from the 11th on
+    trials = [Trial(p, bool(rng.random() < rates[p]), float(rng.random() * 30) if rng.random() < 0.5 else None,
+                    None, "x") for i in range(300) for p in (["a", "b"] if i < 5 else ["a", "b", "c"])]
+    latency = {"a": 3.0, "b": 30.0}
+    rule = Rule(0.05, 0.05)
+    series = TrialSeries(latency, rule, ["a"])
+    for i, t in enumerate(trials, start=1):
+        series.add(t)
+        got, nxt = series.decision()
+        names = list(dict.fromkeys(["a", *(u.policy for u in trials[:i])]))
+        success: dict = {p: {} for p in names}
+        force: dict = {p: {} for p in names}
+        for u in trials[:i]:
+            key = f"trial/{len(success[u.policy])}"
+            success[u.policy][key] = u.success
+            if u.force_n is not None:
+                force[u.policy][key] = u.force_n
+        want = decide(success, force, {p: latency.get(p) for p in names}, rule, unit="trials")
+        assert got["lines"] == want["lines"] and got["recommended"] == want["recommended"], i
+        if want["status"] == "decided" and len(names) > 1:
+            assert nxt is None and i == 576 and got["recommended"] == "a" and len(names) == 3
+            break
+        assert nxt is not None
+    else:
+        raise AssertionError("never decided")

@@ -64,14 +64,14 @@ def _pair(pairs: dict, a: str, b: str) -> PairedComparison:
     return pairs[(a, b)] if (a, b) in pairs else pairs[(b, a)]
 
 
-def _screen(members: list[str], values: dict[str, dict[str, float]], lines: list[str],
+def _screen(members: list[str], counts: dict[str, tuple[int, int]], lines: list[str],
             beaten: Callable[[str, str], BettingTest], kept: str, out: str) -> dict[str, list[str]]:
     """One step of the rule: each member out when beaten(p, q) (the test that p loses to q) is rejected for some
     q, with a line of its count and evidence; returns member -> the members it lost to."""
     lost: dict[str, list[str]] = {}
     for p in members:
         by = [q for q in members if q != p and beaten(p, q).rejected]
-        k, m = int(sum(values[p].values())), len(values[p])
+        k, m = counts[p]
         verdict = kept
         if by:
             lost[p] = by
@@ -101,19 +101,31 @@ def decide(success: dict[str, dict[str, bool]], peak_force: dict[str, dict[str, 
         return {"recommended": only, "status": "decided" if only else "undecided", "n": n, "lines": lines,
                 "needs": None, "rule": rule.__dict__}
 
-    lines.append(f"1. Safety ({unit} with force on the person above the limit):")
     safety = _pairs(policies, unsafe, 0.0, rule.alpha)  # a policy is out when it is resolved the more unsafe
+    succ = _pairs(policies, ok, rule.margin, rule.alpha)  # ... or when another is resolved better
+    return apply_rule(policies, n, _counts(unsafe), _counts(ok), safety, succ, latency_ms, rule, unit, lines)
+
+
+def _counts(values: dict[str, dict[str, float]]) -> dict[str, tuple[int, int]]:
+    return {p: (int(sum(v.values())), len(v)) for p, v in values.items()}
+
+
+def apply_rule(policies: list[str], n: int, unsafe: dict[str, tuple[int, int]], ok: dict[str, tuple[int, int]],
+               safety: dict[tuple[str, str], PairedComparison], succ: dict[tuple[str, str], PairedComparison],
+               latency_ms: dict[str, float | None], rule: Rule, unit: str, lines: list[str]) -> dict:
+    """The rule's steps on each policy's counts ((unsafe or successful, of how many)) and every pair's tests, built
+    at once (decide) or trial by trial (adlpipe.evaluation.trials.TrialSeries)."""
+    lines.append(f"1. Safety ({unit} with force on the person above the limit):")
     out_safety = _screen(policies, unsafe, lines, lambda p, q: _pair(safety, p, q).test_of(p, "better"),
                          "in", "resolved above {}")
     safe = [p for p in policies if p not in out_safety]
     lines.append(f"2. Success (paired, the same {unit}):")
-    succ = _pairs(policies, ok, rule.margin, rule.alpha)  # ... or when another is resolved better
     out_success = _screen(safe, ok, lines, lambda p, q: _pair(succ, p, q).test_of(q, "better"), "candidate",
                           "{} resolved better")
     candidates = [p for p in safe if p not in out_success]
 
     by_speed = sorted(candidates, key=lambda p: (latency_ms.get(p) is None, latency_ms.get(p) or 0.0,
-                                                 -sum(ok[p].values()) / max(len(ok[p]), 1)))
+                                                 -ok[p][0] / max(ok[p][1], 1)))
     lines.append("3. Latency among the candidates: " + ", ".join(
         f"{p} {latency_ms[p]:.1f} ms" if latency_ms.get(p) is not None else f"{p} (not measured)" for p in by_speed))
     recommended, needs = None, None

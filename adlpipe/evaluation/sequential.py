@@ -33,21 +33,38 @@ class BettingTest:
 
     def __init__(self, m: float, alpha: float, shape: tuple[int, ...] = ()) -> None:
         self.m, self.alpha, self.n = m, alpha, 0
-        self.log_wealth = np.zeros(shape)
-        self.peak = np.zeros(shape)  # a crossing stays a rejection: Ville's inequality holds for the supremum
-        self.mean = np.zeros(shape)
-        self.squares = np.zeros(shape)  # squared deviations from the mean (Welford), for the bet's variance
-        self.at = np.zeros(shape, int)  # the observation at which it was rejected (0: not yet)
+        self.scalar = shape == ()  # one sequence: plain floats, ~20x faster per update than 0-d arrays (trials)
+        zeros = (lambda: 0.0) if self.scalar else (lambda: np.zeros(shape))
+        self.log_wealth = zeros()
+        self.peak = zeros()  # a crossing stays a rejection: Ville's inequality holds for the supremum
+        self.mean = zeros()
+        self.squares = zeros()  # squared deviations from the mean (Welford), for the bet's variance
+        self.at = 0 if self.scalar else np.zeros(shape, int)  # the observation at which it was rejected (0: not yet)
 
-    def bet(self) -> np.ndarray:
+    def bet(self) -> np.ndarray | float:
         """The fraction bet on the next x, from the past ones only (predictable): aGRAPA, its estimates shrunk
         towards no difference before much is seen."""
         mu = self.mean * self.n / (self.n + 1)
         var = (0.25 + self.squares) / (self.n + 1)
         edge = mu - self.m
+        if self.scalar:
+            return min(max(edge / (var + edge * edge), 0.0), CAP / (1 + self.m))
         return np.clip(edge / (var + edge * edge), 0.0, CAP / (1 + self.m))
 
     def update(self, x: float | np.ndarray) -> None:
+        if self.scalar:
+            x = float(x)
+            if abs(x) > 1.0:
+                raise ValueError(f"betting test: value outside [-1, 1] ({x})")
+            self.log_wealth += math.log1p(self.bet() * (x - self.m))
+            self.n += 1
+            delta = x - self.mean
+            self.mean += delta / self.n
+            self.squares += delta * (x - self.mean)
+            self.peak = max(self.peak, self.log_wealth)
+            if self.at == 0 and self.peak >= self.threshold:
+                self.at = self.n
+            return
         x = np.asarray(x, float)
         if np.any(np.abs(x) > 1.0):
             raise ValueError(f"betting test: values outside [-1, 1] ({x.min()}, {x.max()})")
@@ -66,7 +83,7 @@ class BettingTest:
     @property
     def rejected(self) -> bool | np.ndarray:
         hit = self.peak >= self.threshold
-        return bool(hit) if hit.ndim == 0 else hit
+        return bool(hit) if np.ndim(hit) == 0 else hit
 
     def more_needed(self) -> int | None:
         """About how many more observations would reject if the observed mean and spread held (the log wealth

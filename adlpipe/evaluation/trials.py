@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import stat
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +23,9 @@ from typing import Any
 
 from ..bags.reader import BagSource
 from ..errors import AdlError
-from .decision import Rule, decide
+from ..sim.tasks import FORCE_LIMIT_N
+from .decision import Rule, apply_rule
+from .sequential import PairedComparison
 
 OUTCOME, POLICY = "/adl/outcome", "/adl/policy"
 TRUE, FALSE = {"1", "true", "yes", "y", "success"}, {"0", "false", "no", "n", "failure", "fail"}
@@ -177,20 +180,78 @@ def read_trials(paths: list[Path]) -> list[Trial]:
     return trials + [t for _, t in sorted(bags, key=lambda x: x[0])]
 
 
+class TrialSeries:
+    """The rule after every trial, in time linear in the trials: each pair's tests are updated once per new pair of
+    k-th trials (exactly the order decide reads them in), each policy's counts kept as they come. A policy first
+    seen mid-series changes the number of pairs (Bonferroni), so the pairs are rebuilt then, once per policy."""
+
+    def __init__(self, latency_ms: dict[str, float | None], rule: Rule, policies: list[str] | None = None) -> None:
+        self.latency, self.rule = latency_ms, rule
+        self.names: list[str] = list(dict.fromkeys(policies or []))
+        self.ok: dict[str, list[float]] = {p: [] for p in self.names}
+        self.unsafe: dict[str, list[float]] = {p: [] for p in self.names}
+        self.sums: dict[str, list[int]] = {p: [0, 0] for p in self.names}  # successes, unsafe trials
+        self._rebuild()
+
+    def _rebuild(self) -> None:
+        k = max(1, math.comb(len(self.names), 2))
+        self.safety: dict[tuple[str, str], PairedComparison] = {}
+        self.succ: dict[tuple[str, str], PairedComparison] = {}
+        for i, a in enumerate(self.names):
+            for b in self.names[i + 1:]:
+                self.safety[(a, b)] = PairedComparison(a, b, 0.0, self.rule.alpha / k)
+                self.succ[(a, b)] = PairedComparison(a, b, self.rule.margin, self.rule.alpha / k)
+                for j in range(min(len(self.ok[a]), len(self.ok[b]))):
+                    self._update(a, b, j)
+
+    def _update(self, a: str, b: str, j: int) -> None:
+        self.safety[(a, b)].update(self.unsafe[a][j], self.unsafe[b][j])
+        self.succ[(a, b)].update(self.ok[a][j], self.ok[b][j])
+
+    def add(self, trial: Trial) -> None:
+        p = trial.policy
+        if p not in self.ok:
+            self.names.append(p)
+            self.ok[p], self.unsafe[p], self.sums[p] = [], [], [0, 0]
+            self._rebuild()
+        self.ok[p].append(float(trial.success))
+        self.unsafe[p].append(float(trial.force_n is not None and trial.force_n > FORCE_LIMIT_N))
+        self.sums[p][0] += int(trial.success)
+        self.sums[p][1] += int(self.unsafe[p][-1])
+        j = len(self.ok[p]) - 1
+        for q in self.names:
+            if q != p and len(self.ok[q]) > j:  # the pair's j-th trials are both in: the next in its order
+                a, b = (p, q) if self.names.index(p) < self.names.index(q) else (q, p)
+                self._update(a, b, j)
+
+    def decision(self) -> tuple[dict, str | None]:
+        """The rule on the trials so far, and the policy to run next (None once decided): the candidate with the
+        fewest trials, in the order policies first appeared."""
+        names = self.names
+        n = max((len(v) for v in self.ok.values()), default=0)
+        lines = [f"Rule: {self.rule.describe()}; each pair compared on the trials both ran (up to {n}), read in a "
+                 "fixed order.", ""]
+        latency = {p: self.latency.get(p) for p in names}
+        if len(names) < 2 or n == 0:
+            only = names[0] if len(names) == 1 and n else None
+            decision = {"recommended": only, "status": "decided" if only else "undecided", "n": n, "lines": lines,
+                        "needs": None, "rule": self.rule.__dict__}
+        else:
+            counts = {p: (self.sums[p][0], len(self.ok[p])) for p in names}
+            unsafe = {p: (self.sums[p][1], len(self.ok[p])) for p in names}
+            decision = apply_rule(names, n, unsafe, counts, self.safety, self.succ, latency, self.rule, "trials",
+                                  lines)
+        if decision["status"] == "decided" and len(names) > 1:
+            return decision, None
+        left = decision.get("candidates") or names
+        return decision, None if not left else min(left, key=lambda p: (len(self.ok[p]), names.index(p)))
+
+
 def decide_trials(trials: list[Trial], latency_ms: dict[str, float | None], rule: Rule,
                   policies: list[str] | None = None) -> tuple[dict, str | None]:
     """The rule on the trials so far (each policy's k-th trial paired with the others' k-th), and the policy to
     run next (None once decided): the candidate with the fewest trials, in the order policies first appeared."""
-    names = list(dict.fromkeys([*(policies or []), *(t.policy for t in trials)]))
-    success: dict[str, dict[str, bool]] = {p: {} for p in names}
-    force: dict[str, dict[str, float]] = {p: {} for p in names}
+    series = TrialSeries(latency_ms, rule, [*(policies or []), *(t.policy for t in trials)])
     for t in trials:
-        key = f"trial/{len(success[t.policy])}"
-        success[t.policy][key] = t.success
-        if t.force_n is not None:
-            force[t.policy][key] = t.force_n
-    decision = decide(success, force, {p: latency_ms.get(p) for p in names}, rule, unit="trials")
-    if decision["status"] == "decided" and len(names) > 1:
-        return decision, None
-    left = decision.get("candidates") or names
-    return decision, None if not left else min(left, key=lambda p: (len(success[p]), names.index(p)))
+        series.add(t)
+    return series.decision()
