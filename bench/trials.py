@@ -31,7 +31,8 @@ def main() -> None:
         ok = rng.random(args.rows) < 0.6
         csv.write_text("policy,success\n" + "".join(f"{'ab'[i % 2]},{int(s)}\n" for i, s in enumerate(ok)))
         t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "adlpipe.trials", str(csv), "--margin", "0"], capture_output=True, text=True)
+        proc = subprocess.run([sys.executable, "-m", "adlpipe.trials", str(csv), "--margin", "0"],
+                              capture_output=True, text=True)
         wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(proc.stderr)
