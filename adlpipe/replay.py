@@ -49,7 +49,6 @@ import argparse
 import os
 import sys
 from collections import defaultdict
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -85,6 +84,7 @@ from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import label_of, predict_episodes, predict_scenes, steps_for
 from .runtime import Placement, add_device_args
+from .workers import stoppable_pool
 
 MAX_SCENES = 1000  # per task: 10,000 scenes' first frames, about 2 GB, fit a laptop; 1e9 were killed at 22 GB
 
@@ -228,8 +228,8 @@ def fresh_scenes(args: argparse.Namespace, tasks: list[str], names: list[str],
         camera_hz = args.scene_camera_hz or float(np.median([camera_rate(f, n) for n in names]))
     jobs = [(t, i, args.scene_seed, args.scene_camera_size or size, size, horizon, camera_hz, args.moving_person)
             for t in tasks for i in (indices or range(args.scenes))]
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        return list(tqdm(pool.map(_fresh_one, jobs, chunksize=2), total=len(jobs), desc="scenes", unit="scene",
+    with stoppable_pool(args.workers) as pool:  # Ctrl-C stops the demonstrators at once
+        return list(tqdm(pool.imap(_fresh_one, jobs, chunksize=2), total=len(jobs), desc="scenes", unit="scene",
                          file=sys.stderr, disable=None))
 
 

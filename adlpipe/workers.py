@@ -1,4 +1,4 @@
-"""A process pool that stops at once on Ctrl-C (record, ingest).
+"""A process pool that stops at once on Ctrl-C (record, ingest, replay's scenes and rollouts).
 
 multiprocessing's Pool, not concurrent.futures: an interrupted executor cancels only the jobs it has not yet handed
 to its workers and waits for the rest (those running and those queued behind them), so `record --world kitchen`
@@ -25,12 +25,13 @@ def _worker_init(then: Callable[[], None] | None) -> None:
 
 
 @contextmanager
-def stoppable_pool(workers: int, initializer: Callable[[], None] | None = None) -> Iterator[Pool]:
-    """A pool of `workers` forked processes; on any exception (Ctrl-C included) inside the block the workers are
-    terminated before it propagates, else they finish their jobs."""
+def stoppable_pool(workers: int, initializer: Callable[[], None] | None = None,
+                   context: str = "fork") -> Iterator[Pool]:
+    """A pool of `workers` processes (forked; "spawn" where the parent used CUDA); on any exception (Ctrl-C
+    included) inside the block the workers are terminated before it propagates, else they finish their jobs."""
     held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        pool = multiprocessing.get_context("fork").Pool(workers, initializer=_worker_init, initargs=(initializer,))
+        pool = multiprocessing.get_context(context).Pool(workers, initializer=_worker_init, initargs=(initializer,))
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, held)
     try:

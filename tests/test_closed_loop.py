@@ -114,3 +114,32 @@ def test_temporal_ensembling_runs_the_oracle_and_the_policy_at_every_waypoint(in
     bad = run_module("replay", "--models", model, "--closed-loop", "4", "--temporal-ensemble", "0.01",
                      "--data", ingested, "--split", split)
     assert "use it with --closed-loop 1" in bad.stderr
+
+
+def test_ctrl_c_stops_a_replay_of_fresh_scenes_at_once(ingested: Path, closed_loop_model, tmp_path: Path) -> None:
+    """SIGINT to replay (to the process group, as a terminal's Ctrl-C, or to replay alone, as a supervisor sends it)
+    while fresh scenes are drawn: replay stops within seconds (its pools terminate their workers)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    split, model = closed_loop_model
+    cmd = [sys.executable, "-m", "adlpipe.replay", "--models", str(model), "--closed-loop", "8", "--fm-steps", "1",
+           "--scenes", "30", "--data", str(ingested), "--split", str(split), "--workers", "2",
+           "--metrics", str(tmp_path / "m.json"), "--details", str(tmp_path / "d.json"), "--table",
+           str(tmp_path / "t.md")]
+    for group in (False, True):  # 4 s in: while drawing the 90 scenes
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                start_new_session=True)
+        time.sleep(4.0)
+        (os.killpg if group else os.kill)(proc.pid, signal.SIGINT)
+        t0 = time.monotonic()
+        _, err = proc.communicate(timeout=60)
+        took = time.monotonic() - t0
+        if proc.returncode == 0:
+            continue  # it had finished
+        assert proc.returncode == 130 and "Traceback" not in err, err
+        assert took < 5.0, f"{took:.1f} s to stop after Ctrl-C"
+        assert not (tmp_path / "d.json").exists()

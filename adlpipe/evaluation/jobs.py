@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import multiprocessing
 import sys
 from collections import Counter, defaultdict
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 from tqdm import tqdm
@@ -13,6 +11,7 @@ from tqdm import tqdm
 from ..journal import Journal
 from ..runtime import Placement
 from ..stats import success_interval
+from ..workers import stoppable_pool
 
 
 def run_jobs(worker, jobs: list[tuple], workers: int, placement: Placement,  # noqa: ANN001
@@ -24,10 +23,11 @@ def run_jobs(worker, jobs: list[tuple], workers: int, placement: Placement,  # n
     done = journal.done if journal else {}
     outcomes: dict[str, list] = {label: list(done[label]) for label in order if label in done}
     todo = [job for job in jobs if job[0] not in outcomes]
-    # CUDA cannot be used in a forked child of a process that has used it: closed-loop workers on a GPU are spawned
-    context = multiprocessing.get_context("spawn") if placement.device.type == "cuda" else None
-    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=context) as pool:
-        for label, name, task, ok, diag in tqdm(pool.map(worker, todo, chunksize=4), total=len(todo),
+    # CUDA cannot be used in a forked child of a process that has used it: closed-loop workers on a GPU are spawned.
+    # A pool that stops at once on Ctrl-C (an executor would wait for every job already queued to its workers).
+    context = "spawn" if placement.device.type == "cuda" else "fork"
+    with stoppable_pool(max(1, workers), context=context) as pool:
+        for label, name, task, ok, diag in tqdm(pool.imap(worker, todo, chunksize=4), total=len(todo),
                                                 desc="replay", unit="ep", file=sys.stderr, disable=None):
             outcomes.setdefault(label, []).append([name, task, bool(ok), diag])
             if journal and len(outcomes[label]) == expected[label]:

@@ -243,7 +243,8 @@ class TrialSeries:
                                   lines)
         if decision["status"] == "decided" and len(names) > 1:
             return decision, None
-        left = decision.get("candidates") or names
+        candidates: list[str] = decision.get("candidates") or []  # type: ignore[assignment]
+        left = candidates or names
         return decision, None if not left else min(left, key=lambda p: (len(self.ok[p]), names.index(p)))
 
 
