@@ -39,6 +39,7 @@ from .planner import Observation, Planner
 from .wire import MAX_MESSAGE_BYTES, PROTOCOL, WireError, array, dumps, field, loads
 
 MAX_TASK_CHARS = 200
+HELLO_TIMEOUT_S = 30.0  # a connection that never says hello does not hold a client slot
 
 
 @dataclass
@@ -112,8 +113,9 @@ class PolicyServer:
                     seed = field(doc, "seed", int, required=False)
                     use = gen if seed is None else self.planner.placement.generator(seed)
                     plan, t_start = await asyncio.get_running_loop().run_in_executor(self.infer, self._plan, obs, use)
-                except (WireError, RuntimeError) as exc:  # RuntimeError: the network refused the input
-                    error = str(exc) if isinstance(exc, WireError) else f"inference failed ({str(exc)[:120]})"
+                except Exception as exc:  # noqa: BLE001 - any failure of one plan is that plan's error reply
+                    error = (str(exc) if isinstance(exc, WireError)
+                             else f"inference failed ({type(exc).__name__}: {str(exc)[:120]})")
                     await ws.send(dumps({"type": "error", "id": msg_id, "error": error}))
                     self._log({"peer": peer, "received": received, "error": error})
                     continue
@@ -137,7 +139,7 @@ class PolicyServer:
         """The hello: protocol, token and the session's seed; the planner's spec in reply. None: refused."""
         while True:
             try:
-                doc = loads(await ws.recv())
+                doc = loads(await asyncio.wait_for(ws.recv(), HELLO_TIMEOUT_S))
                 if field(doc, "type", str) != "hello":
                     raise WireError("the first message is a hello ({'type': 'hello', 'protocol': 1, ...})")
                 if field(doc, "protocol", int) != PROTOCOL:
@@ -154,6 +156,10 @@ class PolicyServer:
             except WireError as exc:
                 await ws.send(dumps({"type": "error", "error": str(exc)}))
                 continue
+            except (asyncio.TimeoutError, TimeoutError):  # noqa: UP041 - distinct classes on Python 3.10
+                await ws.send(dumps({"type": "error", "error": f"no hello within {HELLO_TIMEOUT_S:g} s"}))
+                await ws.close(1008, "no hello")
+                return None
             await ws.send(dumps({"type": "ready", "protocol": PROTOCOL, "policy": self.planner.spec.to_dict()}))
             return self.planner.placement.generator(seed)
 
