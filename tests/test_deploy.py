@@ -245,6 +245,7 @@ def test_ctrl_c_stops_a_serving_server_cleanly(closed_loop_model, ingested: Path
         client.plan(task=obs.task, rgb=obs.rgb, affordance=obs.affordance, state=obs.state, command=obs.command)
         code, err = stop(proc)
     assert code == 0 and "Traceback" not in err and "stopped after 1 plan(s)" in err
+    assert f"on {url}" in err  # the server says it bound 127.0.0.1 (this machine only) without --host
 
 
 def test_serve_refuses_a_bad_model_in_one_line(tmp_path: Path) -> None:

@@ -1,16 +1,21 @@
 """Trials on a real robot: each trial's policy and outcome, read from a CSV or from the trial's bag, and the decision
 rule (adlpipe.evaluation.decision) after every trial, with the policy to run next.
 
-A CSV has a header naming at least `policy` and `success` (1/0, true/false, yes/no), and optionally `trial` (the
-order; otherwise the row order), `force_n` (the peak contact force on the person, N) and `progress` (0..1, kept for
-the record). A trial bag is a recording like any other, plus its outcome on /adl/outcome: a std_msgs/String holding
-JSON ({"policy": "fm_cnn", "success": true, "force_n": 4.2}) or a std_msgs/Bool (success) with the policy's name on
-/adl/policy (std_msgs/String). Bags are taken in the order their trials ended (the outcome's log time).
+The accepted forms, the same for CSVs and bags:
+- success: 1/0, true/false, yes/no, y/n, success/failure (any case); in a bag also a std_msgs/Bool.
+- A CSV (UTF-8, a byte-order mark allowed) has a header naming at least `policy` and `success`, and optionally
+  `trial` (the order: a number on every row, each once; without the column, the row order), `force_n` (the peak
+  contact force on the person, N, 0 to 1e6) and `progress` (0..1, kept for the record).
+- A trial bag is a recording like any other, plus exactly one outcome on /adl/outcome: a std_msgs/String holding a
+  JSON object ({"policy": "fm_cnn", "success": true, "force_n": 4.2}) or one of the success forms, or a
+  std_msgs/Bool; the policy's name in the JSON or as one std_msgs/String on /adl/policy. Bags are taken in the
+  order their trials ended (the outcome's log time).
+- Every input is a regular file (a bag may be a rosbag2 folder) given once; a CSV is at most 64 MiB.
 
 Trials are paired in time: each policy's k-th trial is compared with every other policy's k-th, so run them
-alternating (the suggested next policy does that: the candidate with the fewest trials).
+alternating (the suggested next policy does that: the candidate with the fewest trials). The rule runs after every
+trial in time linear in the trials (TrialSeries).
 """
-
 from __future__ import annotations
 
 import csv
