@@ -16,13 +16,14 @@ from pathlib import Path
 
 from .errors import AdlError, check_interrupted, note_committed
 
-SYSTEM_TREES = (Path("/proc"), Path("/dev"), Path("/sys"))  # never an output, whatever link leads there
+# Never an output, whatever link leads there (/dev's nodes are refused by their type: /dev/shm holds regular files)
+SYSTEM_TREES = (Path("/proc"), Path("/sys"))
 KINDS = {stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFIFO: "a FIFO",
          stat.S_IFSOCK: "a socket"}
 
 
 def special_output(path: Path | str) -> str | None:
-    """Why `path` cannot be an output (a device node, a FIFO, a socket, or a link into /proc, /dev or /sys: the
+    """Why `path` cannot be an output (a device node, a FIFO, a socket, or a link into /proc or /sys: the
     atomic rename would replace a device with a file, and a FIFO blocks the writer), or None for a regular file, a
     folder or a new name."""
     path = Path(path)
