@@ -203,3 +203,18 @@ def test_the_rule_trial_by_trial_is_the_rule_on_all_trials_so_far() -> None:
         assert nxt is not None
     else:
         raise AssertionError("never decided")
+
+
+@pytest.mark.parametrize("msgtype", ["std_msgs/msg/Float64", "std_msgs/msg/Int32", "std_msgs/msg/UInt8"])
+def test_a_numeric_outcome_message_is_refused_in_one_line(tmp_path: Path, msgtype: str) -> None:
+    from collections import Counter
+
+    from adlpipe.bags.writer import BagWriter
+
+    w = BagWriter(tmp_path / "t.mcap", "mcap")
+    w.declare_counts(Counter({"/adl/policy": 1, "/adl/outcome": 1}))
+    w.write("/adl/policy", M.STRING, 10**9, w.msgs.string("a"))
+    w.write("/adl/outcome", msgtype, 2 * 10**9, w.msgs.T[msgtype](data=1))
+    bag = w.close()
+    err = one_line_error(run_module("trials", bag))
+    assert "/adl/outcome: a " in err and "the outcome is a std_msgs/String (JSON, or true/false)" in err
