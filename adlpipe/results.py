@@ -182,9 +182,9 @@ def tables(results: Path) -> dict[str, str]:
         latency = [closed / f"replay_latency_{w}_details.json" for w in ("still", "moving")]
         if latency[0].exists():
             out["latency"] = latency_lines(_load(latency[0]), _load(latency[1]) if latency[1].exists() else None)
-    serve = results / "deploy" / "serve_bench.json"
+    serve, load = results / "deploy" / "serve_bench.json", results / "deploy" / "serve_load.json"
     if serve.exists():
-        out["serve-bench"] = serve_lines(_load(serve))
+        out["serve-bench"] = serve_lines(_load(serve), _load(load) if load.exists() else None)
     out["table2"] = table2_lines(results.parent / "pipelines")  # the benchmark pipelines' committed results
     return {k: "\n".join(v) for k, v in out.items() if v}
 

@@ -69,8 +69,9 @@ def latency_lines(still: dict, moving: dict | None) -> list[str]:
     return lines
 
 
-def serve_lines(bench: dict) -> list[str]:
-    """bench/serve.py's figures: round trip against in-process planning, and plans per second by clients."""
+def serve_lines(bench: dict, load: dict | None = None) -> list[str]:
+    """bench/serve.py's figures: round trip against in-process planning, plans per second by clients, and (load)
+    8 clients for minutes with the server's resident memory."""
     host = bench["host"]
     lines = ["| policy | in-process plan ms | round trip ms | transport overhead ms [IQR] | plans/s with 1 / 2 / 4 / 8 "
              "clients | median round trip ms with 1 / 2 / 4 / 8 |",
@@ -90,4 +91,12 @@ def serve_lines(bench: dict) -> list[str]:
     lines += ["", f"Loopback on {host['cpus']} CPU cores ({host['machine']}), torch {host['torch']} with "
               f"{host['threads']} thread(s) on each side, batch 1, an observation of two recorded frames ({shape} "
               "uint8) with its state and command; medians over the rounds, in-process and round trip alternating."]
+    for path, row in (load or {}).get("models", {}).items():
+        run = row.get("load")
+        if run:
+            rss = [mb for _, mb in run["server_rss_mb"]]
+            lines += ["", f"Load: {run['clients']} clients planning back to back for {run['seconds'] / 60:.0f} min "
+                      f"({path.rsplit('/', 1)[-1]}, beside other work on the machine): {run['plans']:,} plans, "
+                      f"{len(run['errors'])} errors, the server's resident memory {rss[0]:.1f} MB after 5 s and "
+                      f"{rss[-1]:.1f} MB at the end (at most {max(rss):.1f})."]
     return lines
