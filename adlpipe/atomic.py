@@ -36,10 +36,14 @@ def special_output(path: Path | str) -> str | None:
     if mode is not None and stat.S_IFMT(mode) in KINDS:
         return f"is {KINDS[stat.S_IFMT(mode)]}"
     for hop in _link_chain(path):
-        for tree in SYSTEM_TREES:
-            if hop == tree or tree in hop.parents:
-                return f"leads into {tree} ({hop})"
+        tree = _system_tree(hop)
+        if tree is not None:
+            return f"leads into {tree} ({hop})"
     return None
+
+
+def _system_tree(p: Path) -> Path | None:
+    return next((tree for tree in SYSTEM_TREES if p == tree or tree in p.parents), None)
 
 
 def _link_chain(path: Path) -> list[Path]:
@@ -49,9 +53,8 @@ def _link_chain(path: Path) -> list[Path]:
     for _ in range(40):
         p = chain[-1]
         resolved_parent = Path(os.path.realpath(p.parent))
-        for tree in SYSTEM_TREES:  # a folder link into /proc, e.g. out/ -> /proc/self/fd
-            if resolved_parent == tree or tree in resolved_parent.parents:
-                return [*chain, resolved_parent / p.name]
+        if _system_tree(resolved_parent) is not None:  # a folder link into /proc, e.g. out/ -> /proc/self/fd
+            return [*chain, resolved_parent / p.name]
         if not os.path.islink(p):
             break
         chain.append(Path(os.path.abspath(resolved_parent / os.readlink(p))))

@@ -131,3 +131,14 @@ def float_range(lo: float | None = None, hi: float | None = None, lo_open: bool 
 POSITIVE = int_range(1)
 NON_NEGATIVE = int_range(0)
 SEED = int_range(0, 2**32 - 1)  # what every generator it reaches accepts (numpy, torch, the gym environments)
+
+
+def read_token_file(path: Path) -> str:
+    """A --token-file's shared token (its first 4 KiB, stripped), or one line saying why it cannot be one."""
+    try:
+        token = path.read_text()[:4096].strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise AdlError(f"--token-file {path}: cannot read it ({exc})") from None
+    if not token:
+        raise AdlError(f"--token-file {path}: empty")
+    return token

@@ -56,7 +56,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import POSITIVE, SEED, Parser, float_range, int_range
+from .cli import POSITIVE, SEED, Parser, float_range, int_range, read_token_file
 from .dataset import schema
 from .dataset.splits import load_split
 from .dvc_outputs import refuse_pipeline_outputs
@@ -298,10 +298,11 @@ def closed_loop_jobs(args: argparse.Namespace, scenes: list[ReplayScene], checkp
                     jobs += [(label + suffix, str(d), checkpoint, sc, steps, ta, args.seed, placement, None,
                               args.time_limit, args.temporal_ensemble, opts) for sc in scenes]
     if args.trial_bags:  # trial k of every policy before trial k + 1 of any: the series a lab runs, alternating
-        policy = [i for i, j in enumerate(jobs) if j[8] is None]  # not the oracle's
-        order = sorted(policy, key=lambda i: (policy.index(i) % len(scenes), policy.index(i) // len(scenes)))
-        for k, i in enumerate(order):
-            jobs[i] = (*jobs[i][:-1], replace(jobs[i][-1], trial_index=k))
+        policy = [i for i, j in enumerate(jobs) if j[8] is None]  # not the oracle's: scenes in order per row
+        order = sorted(range(len(policy)), key=lambda k: (k % len(scenes), k // len(scenes)))
+        for trial, k in enumerate(order):
+            i = policy[k]
+            jobs[i] = (*jobs[i][:-1], replace(jobs[i][-1], trial_index=trial))
     return jobs
 
 
@@ -314,7 +315,7 @@ def latency_value(text: str) -> float | None:
 
 def loop_options(args: argparse.Namespace) -> list[tuple[str, LoopOptions]]:
     """(label suffix, options) of every latency and execution row of a closed-loop replay."""
-    token = read_token(args.token_file) if args.token_file else None
+    token = read_token_file(args.token_file) if args.token_file else None
     trial_dir = str(args.trial_bags) if args.trial_bags else None
     base = LoopOptions(server=args.server, token=token, trial_dir=trial_dir)
     if not args.latency:
@@ -329,16 +330,6 @@ def loop_options(args: argparse.Namespace) -> list[tuple[str, LoopOptions]]:
             out.append((f"/lat-{name}-{mode}",
                         replace(base, latency_s=None if ms is None else ms / 1000.0, execution=mode)))
     return out
-
-
-def read_token(path: Path) -> str:
-    try:
-        token = path.read_text()[:4096].strip()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise AdlError(f"--token-file {path}: cannot read it ({exc})") from None
-    if not token:
-        raise AdlError(f"--token-file {path}: empty")
-    return token
 
 
 def test_tasks(data: Path, names: list[str]) -> list[str]:

@@ -17,18 +17,18 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .cli import Parser, int_range
+from .cli import Parser, int_range, read_token_file
 from .errors import AdlError, run_cli
 
 
 def task_speeds(data: Path, split: Path | None) -> dict[str, float]:
     """The tasks' demonstrated speeds over the training split (replay's fixed speed profile)."""
-    from .errors import read_json_object
+    from .dataset.splits import load_split
     from .evaluation.replay import demonstrated_speeds
 
     split = split or data.with_name("split.json")
-    names = read_json_object(split, "split").get("train")
-    if not isinstance(names, list) or not names:
+    names = load_split(split)["train"]
+    if not names:
         raise AdlError(f"{split}: no train episodes to take the tasks' speeds from")
     return demonstrated_speeds(data, names)
 
@@ -60,14 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     from .deploy.server import PolicyServer, ServeConfig
 
     torch.set_num_threads(args.threads)
-    token = None
-    if args.token_file is not None:
-        try:
-            token = args.token_file.read_text()[:4096].strip()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise AdlError(f"--token-file {args.token_file}: cannot read it ({exc})") from None
-        if not token:
-            raise AdlError(f"--token-file {args.token_file}: empty")
+    token = read_token_file(args.token_file) if args.token_file is not None else None
     model = args.model / ("best.pt" if args.checkpoint == "best" else "model.pt") if args.model.is_dir() else args.model
     speeds = task_speeds(args.data, args.split) if args.data else None
     planner = Planner.load(model, args.device, args.steps, speeds)
