@@ -298,31 +298,18 @@ def record_demo(task_name: str, rng: np.random.Generator, width: int = 224, heig
     st.affordance = affordance_map(project(tip_pts, K, T_bc), width, height, sigma=0.03 * width)
     camera = RgbdCamera(m, width, height)
     monitor = SuccessMonitor(task, scene)
-    qadr = [m.jnt_qposadr[m.joint(j).id] for j in st.joint_names]
-    vadr = [m.jnt_dofadr[m.joint(j).id] for j in st.joint_names]
-    obj_names = [n for n in spec.poses if n != "manikin"]
-    next_t = {"cam": 0.0, "joint": 0.0, "tf": 0.0}
+    record = _StreamRecorder(ctrl, st, joint_hz, tf_hz,
+                             reference=(lambda t: reference(min(t, duration))) if disturb is not None else None)
+    next_cam = [0.0]
 
     def on_step(t: float) -> None:
         monitor.step()
-        if t + 1e-9 >= next_t["joint"]:
-            st.joints.append((t, d.qpos[qadr].copy(), d.qvel[vadr].copy()))
-            st.actions.append((t, np.append(ctrl.target, ctrl.gripper_command)))
-            if disturb is not None:
-                st.reference.append((t, reference(min(t, duration))))
-            next_t["joint"] += 1.0 / joint_hz
-        if t + 1e-9 >= next_t["tf"]:
-            q = np.zeros(4)
-            mujoco.mju_mat2Quat(q, d.site_xmat[ctrl.tcp])
-            st.ee.append((t, ctrl.tcp_pos, q))
-            next_t["tf"] += 1.0 / tf_hz
-        if t + 1e-9 >= next_t["cam"]:
+        record.step(t)
+        if t + 1e-9 >= next_cam[0]:
             rgb, depth = camera.render(d)
             depth[depth > DEPTH_RANGE_M] = np.nan  # no return beyond the sensor's range (REP 118)
-            st.camera.append((t, rgb, depth))
-            st.objects.append((t, {n: (d.xpos[m.body(n).id].copy(), d.xquat[m.body(n).id].copy())
-                                   for n in obj_names}))
-            next_t["cam"] += 1.0 / camera_hz
+            record.frame(t, rgb, depth)
+            next_cam[0] += 1.0 / camera_hz
 
     on_step(0.0)
     execute_path(ctrl, path, duration, on_step=on_step)
@@ -410,7 +397,7 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float, np.n
     next_frame = [0.0]
     tcp_path: list[np.ndarray] = []
     commands: list[np.ndarray] = []
-    record = _StreamRecorder(ctrl, streams, camera_hz) if streams is not None else None
+    record = _StreamRecorder(ctrl, streams) if streams is not None else None
 
     def on_step(t: float) -> None:
         monitor.step()
@@ -493,13 +480,15 @@ def _constant(p: np.ndarray) -> Callable[[float], np.ndarray]:
 
 
 class _StreamRecorder:
-    """Fills a Streams with a closed-loop rollout at the recorder's rates (joints and command 100 Hz, tcp 50 Hz,
-    camera and objects at the camera's), so that a trial is written as the same kind of bag a demonstration is."""
+    """Fills a Streams at the recorder's rates (joints and command at joint_hz, tcp at tf_hz, camera and objects at
+    each rendered frame): the demonstrator's recording and a closed-loop trial's, so both are the same kind of bag.
+    reference: the demonstrator's undisturbed path at t, kept beside the command (record --recoveries)."""
 
-    def __init__(self, ctrl: object, st: Streams, camera_hz: float, joint_hz: float = 100.0,
-                 tf_hz: float = 50.0) -> None:
+    def __init__(self, ctrl: object, st: Streams, joint_hz: float = 100.0, tf_hz: float = 50.0,
+                 reference: Callable[[float], np.ndarray] | None = None) -> None:
         m = ctrl.m  # type: ignore[attr-defined]
         self.ctrl, self.st, self.joint_dt, self.tf_dt = ctrl, st, 1.0 / joint_hz, 1.0 / tf_hz
+        self.reference = reference
         self.qadr = [m.jnt_qposadr[m.joint(j).id] for j in st.joint_names]
         self.vadr = [m.jnt_dofadr[m.joint(j).id] for j in st.joint_names]
         self.objects = [n for n in st.spec.poses if n != "manikin"]
@@ -510,7 +499,7 @@ class _StreamRecorder:
 
     def frame(self, t: float, rgb: np.ndarray, depth: np.ndarray) -> None:
         m, d = self.ctrl.m, self.ctrl.d  # type: ignore[attr-defined]
-        self.st.camera.append((t, rgb, depth.copy()))
+        self.st.camera.append((t, rgb, depth))
         self.st.objects.append((t, {n: (d.xpos[m.body(n).id].copy(), d.xquat[m.body(n).id].copy())
                                     for n in self.objects}))
 
@@ -519,6 +508,8 @@ class _StreamRecorder:
         if t + 1e-9 >= self.next["joint"]:
             st.joints.append((t, d.qpos[self.qadr].copy(), d.qvel[self.vadr].copy()))
             st.actions.append((t, np.append(c.target, c.gripper_command)))  # type: ignore[attr-defined]
+            if self.reference is not None:
+                st.reference.append((t, self.reference(t)))
             self.next["joint"] += self.joint_dt
         if t + 1e-9 >= self.next["tf"]:
             q = np.zeros(4)
