@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
                    "speeds (needed to time a first-frame model's plans)")
     p.add_argument("--split", type=Path, help="split.json of --data (default: beside it)")
     p.add_argument("--log", type=Path, help="append one JSON line per plan: received, queue, inference, reply ms")
-    p.io(inputs=["model", "data", "split", "token_file"], outputs=["log"])
+    p.io(inputs=["model", "data", "split", "token_file"], outputs=["log", "port_file"])
     args = p.parse_args(argv)
 
     import torch

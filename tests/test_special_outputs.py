@@ -35,6 +35,7 @@ CASES = [
     ("seeds", "--eval {details} --replay {details} -o {out}"),
     ("seeds", "--eval {details} --replay {details} --metrics {out}"),
     ("serve", "{models} --log {out}"),
+    ("serve", "{models} --port-file {out}"),
     ("split", "{data} -o {out}"),
     ("train", "--model fm_cnn --data {data} --log {out}"),
     ("trials", "{trials} -o {out}"),
