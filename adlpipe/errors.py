@@ -131,6 +131,13 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
     except KeyboardInterrupt:
         print(interrupted_line(prog), file=sys.stderr)
         return 130
+    except Exception:
+        # A Ctrl-C that lands inside a C extension's import comes back as that import's error (mujoco's pybind11
+        # init turns it into "ImportError: initialization failed", seen in CI): the flag says it was the Ctrl-C.
+        if not _INTERRUPTED.is_set():
+            raise
+        print(interrupted_line(prog), file=sys.stderr)
+        return 130
     finally:
         _INTERRUPTED.clear()  # the stage is over: its Ctrl-C must not stop whatever runs next in this process
         if previous is not None and not _running_as(prog):

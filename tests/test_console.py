@@ -38,3 +38,24 @@ def test_ctrl_c_while_the_console_command_starts_is_one_line(tmp_path: Path, del
     assert proc.returncode in (0, 130), err  # 0: it had finished before the signal
     if proc.returncode == 130:
         assert "interrupted" in err.strip().splitlines()[-1]
+
+
+def test_ctrl_c_made_an_import_error_by_an_extension_is_an_interrupt(capsys: pytest.CaptureFixture[str]) -> None:
+    """mujoco's pybind11 init turns a Ctrl-C that lands during `import mujoco` into "ImportError: initialization
+    failed" (CI, 0.6 s after start): the stage reports the interrupt, and an import error of its own is still raised."""
+    from adlpipe.errors import run_cli
+
+    def interrupted_import(argv: list[str] | None) -> int:
+        try:
+            signal.raise_signal(signal.SIGINT)  # the real handler run_cli installs
+        except KeyboardInterrupt as exc:
+            raise ImportError("initialization failed") from exc  # what pybind11 makes of it
+        return 0
+
+    def broken_import(argv: list[str] | None) -> int:
+        raise ImportError("initialization failed")
+
+    assert run_cli("adlpipe.test", interrupted_import, []) == 130
+    assert capsys.readouterr().err.startswith("adlpipe.test: interrupted; no output was replaced")
+    with pytest.raises(ImportError):
+        run_cli("adlpipe.test", broken_import, [])
