@@ -12,7 +12,7 @@ import sys
 from .errors import CONSOLE, run_cli
 
 STAGES = ("record", "ingest", "split", "train", "evaluate", "replay", "report", "trials", "seeds", "inspect",
-          "export", "doctor", "edit", "assess", "benchmark", "results", "serve")
+          "export", "doctor", "edit", "assess", "benchmark", "results", "serve", "rollout")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -43,6 +43,7 @@ KITCHEN_TOPICS = TopicMap(depth=None, affordance=None, gripper_joint="panda0_fin
                           state="/kitchen/state", action="/kitchen/action")
 REFERENCE_NAMES = ["tcp_x", "tcp_y", "tcp_z"]
 PLAN_TOPIC = "/adl/plan"  # a trial's plans (nav_msgs/Path per re-plan, stamped at its observation)
+EXPERT_PLAN_TOPIC = "/adl/expert_plan"  # a labelled rollout's expert plans (adlpipe.sim.dagger), in the same form
 SEEDED_WORLDS = {"pusht": ("push_the_T", PUSHT_TOPICS), "kitchen": ("franka_kitchen", KITCHEN_TOPICS)}  # bag stem
 
 
@@ -109,11 +110,14 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
                 tn = ns(t)
                 events.append((tn, 8, topics.joints, M.JOINT_STATE,
                                lambda tn=tn, qp=qp, qv=qv: f.joint_state(tn, st.joint_names, qp, qv)))
-        for t, waypoints, times in st.plans:  # a trial's plans (adlpipe.deploy.trial_bags), each at its observation
-            tn = ns(t)
-            stamps = [ns(t + float(x)) for x in times]
-            events.append((tn, 9, PLAN_TOPIC, M.PATH, lambda tn=tn, w=waypoints, ts=stamps: f.path(
-                tn, topics.base_frame, w, ts)))
+        for topic, plans in ((PLAN_TOPIC, st.plans), (EXPERT_PLAN_TOPIC, st.expert_plans)):
+            for t, waypoints, times in plans:  # a trial's plans (adlpipe.deploy.trial_bags), each at its observation
+                tn = ns(t)
+                stamps = [ns(t + float(x)) for x in times]
+                events.append((tn, 9, topic, M.PATH, lambda tn=tn, w=waypoints, ts=stamps: f.path(
+                    tn, topics.base_frame, w, ts)))
+        for t, drives in st.interventions if topics.intervention else []:  # who drove from t on (sim.dagger)
+            events.append((ns(t), 9, topics.intervention, M.BOOL, lambda v=drives: f.boolean(v)))
         for topic, msgtype, value in outcome or []:  # a trial's outcome, after its last frame (frames in time order)
             events.append((ns(st.camera[-1][0] + 0.01), 10, topic, msgtype,
                            lambda v=value, b=msgtype == M.BOOL: f.boolean(v) if b else f.string(str(v))))

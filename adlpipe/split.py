@@ -30,10 +30,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-o", "--output", type=Path, help="split JSON (default: split.json beside the data)")
     p.add_argument("--test-fraction", type=float_range(0, 1, lo_open=True), default=0.2)
     p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--extend", type=Path, default=None, metavar="SPLIT",
+                   help="keep an earlier split of the same recordings: its test episodes stay the test split, and "
+                   "every other episode of the data is train (DAgger rollouts join the training data; the test "
+                   "split never moves)")
     p.add_argument("--skip-bad", action="store_true",
                    help="leave out episodes whose files cannot be read (each named) instead of stopping")
     p.add_force()
-    p.io(inputs=["data"], outputs=["output"])
+    p.io(inputs=["data", "extend"], outputs=["output"])
     args = p.parse_args(argv)
     if not 0 < args.test_fraction < 1:
         raise AdlError("--test-fraction must be between 0 and 1")
@@ -48,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
         keys = recording_keys(f, list(tasks))
     if not tasks:
         raise AdlError(f"{args.data}: dataset has no {'readable ' if bad else ''}episodes")
-    split = make_split(tasks, args.test_fraction, args.seed, keys)
+    split = make_split(tasks, args.test_fraction, args.seed, keys) if args.extend is None else \
+        extended_split(args.extend, list(tasks))
     split.update({"seed": args.seed, "test_fraction": args.test_fraction, "data": str(args.data)})
     if bad:
         split["skipped"] = bad
@@ -56,6 +61,20 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{out}: {len(split['train'])} train / {len(split['test'])} test episodes over "
           f"{len(set(tasks.values()))} task(s)" + (f", {len(bad)} bad episode(s) left out" if bad else ""))
     return 0
+
+
+def extended_split(earlier: Path, names: list[str]) -> dict:
+    """An earlier split's test episodes as the test split, every other episode of the data as train."""
+    from .dataset.splits import load_split
+
+    test = list(load_split(earlier)["test"])
+    have = set(names)
+    gone = [n for n in test if n not in have]
+    if gone:
+        raise AdlError(f"--extend {earlier}: its test episode {gone[0]} is not in the data ({len(gone)} missing); "
+                       "extend a split of the same recordings")
+    held = set(test)
+    return {"train": [n for n in names if n not in held], "test": test, "extends": str(earlier)}
 
 
 if __name__ == "__main__":

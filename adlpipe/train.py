@@ -127,6 +127,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    "topic map's reference stream), ee (the measured end effector's, relative to where it "
                    "is: for bags without a command topic) or action (the bags' action stream per frame, absolute, "
                    "with their state stream as the state input: Push-T, joint-space policies)")
+    p.add_argument("--init", type=Path, default=None, metavar="CHECKPOINT",
+                   help="start from a trained model's weights and normalisation (its model.pt or best.pt), with a "
+                   "fresh optimiser and schedule over --epochs: a DAgger round goes on from the previous round's "
+                   "policy (docs/science/dagger.md)")
+    p.add_argument("--steps", type=int_range(1), default=None,
+                   help="train for this many optimiser steps in all instead of --epochs (as many epochs as that "
+                   "takes): one budget for runs on different numbers of episodes (DAgger rounds)")
+    p.add_argument("--corrections-only", action="store_true",
+                   help="closed loop (HG-DAgger): an episode whose bag carried an operator's intervention flag gives "
+                   "training windows only where the operator drove; the demonstrations give every frame")
     add_device_args(p)
     p.add_force()
     p.io(inputs=["data", "split"], outputs=["out", "log"],
@@ -194,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
                       val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment,
                       workers=args.workers, device=device, precision=args.precision, ranks=ranks,
                       windows_per_epoch=args.windows_per_epoch, save_every=args.save_every,
-                      open_files=args.open_files, resume_dir=args.resume_dir)
+                      open_files=args.open_files, resume_dir=args.resume_dir, init=args.init,
+                      corrections_only=args.corrections_only, steps=args.steps)
     if not ranks.main:
         return 0
     val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"

@@ -74,6 +74,8 @@ class BagReadout:
     series: dict[str, Series] = field(default_factory=dict)  # "state" / "action" -> what its topic carried
     cameras: dict[str, CameraReadout] = field(default_factory=dict)  # the map's other cameras, by name
     video_skipped: dict[str, int] = field(default_factory=dict)  # video topic -> packets before its first keyframe
+    # The intervention topic's flags (log time s, value): std_msgs/Bool has no header, so the time it was logged
+    intervention: list[tuple[float, bool]] = field(default_factory=list)
 
 
 @dataclass
@@ -169,7 +171,7 @@ def check_types(bag: Path, topics: dict, tm: TopicMap) -> None:
             tm.depth: DEPTH_TYPES, tm.affordance: {"sensor_msgs/msg/Image"},
             tm.joints: {"sensor_msgs/msg/JointState"}, tm.task: {"std_msgs/msg/String"},
             tm.state: {"sensor_msgs/msg/JointState"}, tm.action: {"sensor_msgs/msg/JointState"},
-            tm.reference: {"sensor_msgs/msg/JointState"}}
+            tm.reference: {"sensor_msgs/msg/JointState"}, tm.intervention: {"std_msgs/msg/Bool"}}
     for topic, types in want.items():
         if topic and topic in topics and AS_ROS.get(topics[topic].msgtype, topics[topic].msgtype) not in types | {"?"}:
             expected = " or ".join(sorted(types))
@@ -212,6 +214,9 @@ def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None
             if log_ns > hi or log_ns < lo - (TF_LEAD_NS if topic == tm.tf else 0):
                 continue
         try:
+            if topic == tm.intervention:
+                state.intervention.append((log_ns / 1e9, bool(decode().data)))
+                continue
             state.take(topic, decode)
         except (AttributeError, TypeError, ValueError, IndexError) as exc:
             raise AdlError(f"{bag}: topic {topic}: message lacks a field or holds a bad value "
@@ -234,7 +239,8 @@ def read_bag(src: BagSource, tm: TopicMap, window: tuple[int, int] | None = None
         affordance=state.aff.finish(state.t_img) if tm.affordance in topics else None,
         first_pose=state.first_pose, joint_t=state.joint_t, joint_pos=state.joint_pos,
         joint_names=state.joint_names, read=read, series=state.series, cameras=state.cameras,
-        video_skipped={t: d.skipped for t, d in state.video.items() if d.skipped})
+        video_skipped={t: d.skipped for t, d in state.video.items() if d.skipped},
+        intervention=state.intervention)
 
 
 class _Streams:
@@ -255,6 +261,7 @@ class _Streams:
         self.joint_pos: list[np.ndarray] = []
         self.joint_names: list[str] = []
         self.series: dict[str, Series] = {}
+        self.intervention: list[tuple[float, bool]] = []
         self.cameras = {c.name: CameraReadout(c.name) for c in tm.extra_cameras}
         self.camera_of = {t: (c.name, role) for c in tm.extra_cameras
                           for role, t in (("image", c.image), ("info", c.camera_info), ("depth", c.depth)) if t}

@@ -29,6 +29,9 @@ class TopicMap:
     # The demonstrator's undisturbed tcp path beside a disturbed command (x, y, z as the action's first three;
     # `record --recoveries`): what `train --target recovery` makes its labels from. Optional.
     reference: str | None = "/adl/demo_reference"
+    # An operator's take-over flag (std_msgs/Bool, true from when the person drives until false: HG-DAgger rollouts,
+    # LeRobot's `intervention`); stored per frame as the last value at or before it (false before any). Optional.
+    intervention: str | None = "/adl/intervention"
     tf: str = "/tf"
     tf_static: str = "/tf_static"
     base_frame: str = "base_link"
@@ -122,7 +125,8 @@ class TopicMap:
 
     def optional_topics(self) -> list[str]:
         return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static, self.state,
-                            self.action, self.reference, *(c.depth for c in self.extra_cameras)) if t]
+                            self.action, self.reference, self.intervention,
+                            *(c.depth for c in self.extra_cameras)) if t]
 
 
 PRIMARY_CAMERA = "camera"

@@ -10,6 +10,10 @@
     frames/state_stream, frames/action_stream (M, D) float32 and their stamps frames/<key>_stream_t (M,) float64:
                                                the whole stream at its own rate (a command at 100 Hz is followed
                                                between 15 Hz frames, whatever the camera's rate)
+    frames/intervention   (T,)        bool     an operator drove at the frame (the topic map's intervention flag: the
+                                               last value at or before the frame, false before any); with
+                                               frames/intervention_stream (M,) bool and its stamps _t (M,). Only when
+                                               the bag has the topic.
     frames/depth          (D, S, S)   uint16   millimetres, 0 = no return; frames/depth_t (D,) its stamps
     frames/depth_index    (T,)        int32    the depth image nearest each frame within the tolerance, -1: none
     frames/affordance     (A, S, S)   float32  frames/affordance_t (A,); frames/affordance_index (T,): the map
@@ -180,6 +184,18 @@ class FrameWriter:
             self.g.create_dataset(f"{key}_stream", data=rows.astype(np.float32))
         self._sync_images(t, t0, tolerance, ("depth", "affordance"))
         return keep
+
+    def intervention(self, t0: float, flags: list[tuple[float, bool]]) -> None:
+        """The operator's flag (log time s, value) at each kept frame: the last value at or before it (a flag is
+        published when the operator takes over or hands back, or at a rate), false before the first."""
+        t = np.array([x for x, _ in flags], float) - t0
+        v = np.array([b for _, b in flags], bool)
+        order = np.argsort(t, kind="stable")
+        t, v = t[order], v[order]
+        at = np.searchsorted(t, self.kept_t + 1e-9, side="right") - 1
+        self.g.create_dataset("intervention", data=np.where(at >= 0, v[np.maximum(at, 0)], False))
+        self.g.create_dataset("intervention_stream_t", data=t)
+        self.g.create_dataset("intervention_stream", data=v)
 
     def _trim(self, t0: float, t_end: float, tolerance: float, where: str) -> np.ndarray:
         """Write what is held, keep the frames from the first image (t0, absolute s) to the path's end and store

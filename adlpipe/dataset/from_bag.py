@@ -137,6 +137,8 @@ def extract_episode(bag: Path, tm: TopicMap, n_waypoints: int, size: int, task_o
         gripper = r.joint_names.index(tm.gripper_joint) if tm.gripper_joint in r.joint_names[:n_joints] else None
         frames.finish(r.t_img, t_end, tm.sync_tolerance_s, ee_t, ee_p, joint_t, joint_pos, gripper,
                       f"{bag}: topic {tm.image}", r.series)
+        if r.intervention:
+            frames.intervention(r.t_img, r.intervention)
         for c in cameras:
             cw = frames.camera(c.name)
             index = cw.finish_camera(r.t_img, t_end, tm.sync_tolerance_s, frames.kept_t,

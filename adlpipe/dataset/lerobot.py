@@ -57,6 +57,7 @@ DEPTH_VIDEO_MM = 20  # a depth video's grey level is this many mm (8 bits: 0-5.1
 # percentile is 3.8 m; PNG keeps 16-bit mm)
 RGB, DEPTH, AFFORDANCE = "observation.images.rgb", "observation.images.depth", "observation.images.affordance"
 STATE, ACTION = "observation.state", "action"
+INTERVENTION = "intervention"  # an operator drove at the frame (false in episodes recorded without the flag)
 CAMERA_TIMESTAMP = "observation.camera_timestamp"  # the camera's stamp (timestamp is frame_index / fps, LeRobot's)
 IMAGE_STRUCT = pa.struct([("bytes", pa.binary()), ("path", pa.string())])
 
@@ -121,6 +122,7 @@ class Layout:
     cameras: list[str] = field(default_factory=list)  # every camera's name when there are several, else empty
     video: bool = True  # the cameras as MP4 video (LeRobot's own form), else PNG in the data files
     maps_video: bool = False  # depth and affordance as MP4 video (8-bit grey, lossy), else PNG in the data files
+    intervention: bool = False  # an operator's take-over flag per frame (LeRobot's `intervention`; HG-DAgger bags)
 
     def image_key(self, camera: str) -> str:
         return f"observation.images.{camera}" if self.cameras else RGB
@@ -139,6 +141,8 @@ class Layout:
         f[STATE] = {"dtype": "float32", "shape": [len(state)], "names": state}
         f[ACTION] = {"dtype": "float32", "shape": [3], "names": ["ee_x", "ee_y", "ee_z"]}
         f[CAMERA_TIMESTAMP] = {"dtype": "float32", "shape": [1], "names": None}
+        if self.intervention:
+            f[INTERVENTION] = {"dtype": "bool", "shape": [1], "names": None}
         for key, dtype in (("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"),
                            ("index", "int64"), ("task_index", "int64")):
             f[key] = {"dtype": dtype, "shape": [1], "names": None}
@@ -153,6 +157,7 @@ class Layout:
         fields += [pa.field(STATE, pa.list_(pa.float32(), len(feats[STATE]["names"]))),
                    pa.field(ACTION, pa.list_(pa.float32(), 3)), pa.field(CAMERA_TIMESTAMP, pa.float32()),
                    pa.field("timestamp", pa.float32())]
+        fields += [pa.field(INTERVENTION, pa.bool_())] if self.intervention else []
         fields += [pa.field(k, pa.int64()) for k in ("frame_index", "episode_index", "index", "task_index")]
         hf = {"info": {"features": {k: ({"_type": "Image"} if v["dtype"] == "image" else
                                         {"feature": {"dtype": "float32", "_type": "Value"}, "length": v["shape"][0],
@@ -167,7 +172,7 @@ def plan(f: h5py.File, names: list[str], video: bool = True, maps: str = "png") 
         raise AdlError(f"maps {maps!r}: one of {', '.join(MAPS)}")
     joints: list[str] | None = None
     cameras: list[str] | None = None
-    depth = affordance = False
+    depth = affordance = intervention = False
     rates = []
     for n in names:
         g = f[schema.EPISODES][n]
@@ -186,6 +191,7 @@ def plan(f: h5py.File, names: list[str], video: bool = True, maps: str = "png") 
         fr = _frames_checked(g, n)  # every episode checked before anything is written
         depth |= bool(g.attrs.get("has_depth", False)) and "depth" in fr and len(fr["depth"]) > 0
         affordance |= bool(g.attrs.get("has_affordance", False)) and "affordance" in fr and len(fr["affordance"]) > 0
+        intervention |= "intervention" in fr
         t = fr["t"][()]
         if len(t) > 1:
             rates.append(1.0 / float(np.median(np.diff(t))))
@@ -193,7 +199,7 @@ def plan(f: h5py.File, names: list[str], video: bool = True, maps: str = "png") 
     several = cameras if cameras and len(cameras) > 1 else []
     keep = maps != "none"
     return Layout(int(f.attrs["image_size"]), joints or [], depth and keep, affordance and keep, fps, several, video,
-                  maps_video=maps == "video")
+                  maps_video=maps == "video", intervention=intervention)
 
 
 class Export:
@@ -276,6 +282,8 @@ class Export:
             "episode_index": pa.array(np.full(T, index), pa.int64()),
             "index": pa.array(np.arange(self.frames, self.frames + T), pa.int64()),
             "task_index": pa.array(np.full(T, self.task_index[task]), pa.int64()),
+            **({INTERVENTION: pa.array(fr["intervention"][()].astype(bool) if "intervention" in fr
+                                       else np.zeros(T, bool), pa.bool_())} if self.layout.intervention else {}),
         }, schema=self.schema)
         writer.write_table(table)
         ep = {"episode_index": index, "tasks": [task], "length": T, "data/chunk_index": self.chunk,

@@ -382,6 +382,9 @@ class Windows:
     rate_hz: float = 10.0
     target: str = "command"
     images: bool = True
+    # HG-DAgger: an episode that carries an operator's flag (frames/intervention) gives windows only at the frames
+    # the operator drove; every other episode (the demonstrations) gives every frame
+    corrections_only: bool = False
 
 
 def compute_action_stats(index: str | Path, names: list[str]) -> dict[str, list[float]]:
@@ -432,16 +435,22 @@ class WindowDataset(Dataset):
         self.files = _EpisodeFiles(str(index), self.names, open_files)
         self._metas: dict[int, dict] = {}
         self._cached: dict[int, tuple] = {}
-        lengths = []
-        for n in self.names:  # windows start at frames up to the end of the demonstration
+        lengths, drove = [], {}
+        for e, n in enumerate(self.names):  # windows start at frames up to the end of the demonstration
             g = self.files.group(n)
             lengths.append(int(np.searchsorted(g["frames/t"][()], float(g.attrs["duration_s"]), "right")))
+            if windows.corrections_only and "intervention" in g["frames"]:
+                drove[e] = g["frames/intervention"][()]
         self.lengths = np.maximum(np.array(lengths, int), 1)
         if frames_per_episode:
             self.items = [(e, int(k)) for e, n in enumerate(self.lengths)
                           for k in np.unique(np.linspace(0, n - 1, frames_per_episode).round().astype(int))]
         else:
-            self.items = [(e, k) for e, n in enumerate(self.lengths) for k in range(n)]
+            self.items = [(e, k) for e, n in enumerate(self.lengths) for k in range(n)
+                          if e not in drove or (k < len(drove[e]) and drove[e][k])]
+        if not self.items:
+            raise AdlError(f"{index}: no training window: every episode that carries an intervention flag has no "
+                           "frame the operator drove, and no other episode is given")
         self.cache = bool(frames_per_episode) and augment is None and len(self.items) <= MAX_CACHED_WINDOWS
 
     def __len__(self) -> int:

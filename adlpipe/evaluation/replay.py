@@ -44,6 +44,10 @@ class LoopOptions:
     execution: str = "sync"
     trial_dir: str | None = None
     trial_index: int = 0  # the trial's place in the series (its bag's clock: trials are read in this order)
+    # A labelled rollout (DAgger; adlpipe.sim.dagger): the expert's plan at every re-plan and the scene's
+    # demonstrated path go into the trial bag; with an operator rule, the operator takes over off the path
+    labelled: bool = False
+    operator: object | None = None  # adlpipe.sim.dagger.OperatorRule
 
 
 def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
@@ -91,12 +95,21 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
 
     streams = trial_streams(sc, cfg.image_size) if opts.trial_dir else None
     spec = spec_from_objects(sc.task, sc.object_names, sc.objects, sc.person)
+    labelled, reference = None, None
+    if opts.labelled:
+        from ..sim.dagger import Expert, LabelledRollout, Operator
+
+        ref_t, ref_p = sc.series("command")
+        expert = Expert(ref_t, ref_p, cfg.horizon, cfg.rate_hz)
+        plan = labelled = LabelledRollout(plan, expert, streams, execute,
+                                          Operator(expert, opts.operator) if opts.operator else None)
+        reference = lambda t: np.array([np.interp(t, ref_t, ref_p[:, d]) for d in range(3)])  # noqa: E731
     try:
         run = replay_closed_loop(spec, plan, time_limit * sc.duration_s, cfg.rate_hz, execute, cfg.n_obs,
                                  sc.rgb.shape[0], sc.camera_hz,
                                  anchor="measured" if (oracle or cfg.target) == "ee" else "command",
                                  ensemble=ensemble, latency_s=opts.latency_s, execution=opts.execution,
-                                 streams=streams)
+                                 streams=streams, reference=reference)
     finally:
         if client is not None:
             client.close()
@@ -111,6 +124,8 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
             "demo_still_s": round(longest_still(demo_at_rate, cfg.rate_hz), 2), "plans": run.plans}
     if opts.latency_s == 0.0:  # with latency the executed commands are no longer whole chunks of Ta per re-plan
         diag.update(plan_diagnostics(run.command_path, demo_p[0], execute, cfg.rate_hz, demo_t, demo_p))
+    if labelled is not None:
+        diag["operator_plans"] = labelled.operator_plans
     if streams is not None:
         from ..deploy.trial_bags import write_trial_bag
 

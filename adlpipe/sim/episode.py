@@ -167,6 +167,10 @@ class Streams:
     disturbances: int = 0  # how many disturbances the demonstrator recovered from
     # A policy's plans in a closed-loop trial (t observed, waypoints (Tp, 3) in the base frame, their times after t)
     plans: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)
+    # A labelled rollout's (adlpipe.sim.dagger): the expert's plan at each re-plan, in the plans' form, and who
+    # drove from each re-plan on (t, True: the operator)
+    expert_plans: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)
+    interventions: list[tuple[float, bool]] = field(default_factory=list)
 
 
 def camera_intrinsics(model: mujoco.MjModel, width: int, height: int) -> np.ndarray:
@@ -364,7 +368,8 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float, np.n
                        duration: float, rate_hz: float, execute: int, n_obs: int, image_size: int,
                        camera_hz: float, anchor: str = "command", ensemble: float | None = None,
                        latency_s: float | None = 0.0, execution: str = "sync",
-                       streams: Streams | None = None) -> ClosedLoopRun:
+                       streams: Streams | None = None,
+                       reference: Callable[[float], np.ndarray] | None = None) -> ClosedLoopRun:
     """The seed's closed loop: from the last `n_obs` camera frames (rgb, depth, tcp position and gripper joint when
     rendered) the policy plans the next waypoints at rate_hz (plan(frames, progress, anchor) -> (Tp, 3) waypoints in
     the base frame, the k-th for k / rate_hz s after the observation; progress: the seconds the arm has spent
@@ -384,7 +389,8 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float, np.n
     clock, a server's round trip included). execution "sync": the arm holds its last command meanwhile; "async":
     it goes on with the previous plan's waypoints after the executed ones (holding the last once they run out), and
     the new plan is joined at the waypoint for the time it arrives (LeRobot's asynchronous inference). The first
-    plan is always waited for. streams: record the rollout into it (camera, joints, tcp, command, objects, plans)."""
+    plan is always waited for. streams: record the rollout into it (camera, joints, tcp, command, objects, plans),
+    with reference(t), the scene's demonstrated path, beside the command (a labelled rollout's, adlpipe.sim.dagger)."""
     if ensemble is not None and execute != 1:
         raise ValueError("temporal ensembling re-plans at every waypoint: execute must be 1")
     if execution not in ("sync", "async"):
@@ -397,7 +403,7 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float, np.n
     next_frame = [0.0]
     tcp_path: list[np.ndarray] = []
     commands: list[np.ndarray] = []
-    record = _StreamRecorder(ctrl, streams) if streams is not None else None
+    record = _StreamRecorder(ctrl, streams, reference=reference) if streams is not None else None
 
     def on_step(t: float) -> None:
         monitor.step()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -75,30 +76,37 @@ def training_episodes(data: Path, split: dict, cfg: ModelConfig, val_fraction: f
 
 
 def datasets(data: Path, cfg: ModelConfig, split: dict, train_names: list[str], val_names: list[str],
-             aug: Augment | None, seed: int, windows_per_epoch: str = "episodes", open_files: int = OPEN_FILES
+             aug: Augment | None, seed: int, windows_per_epoch: str = "episodes", open_files: int = OPEN_FILES,
+             corrections_only: bool = False, stats: dict | None = None
              ) -> tuple[dict, Dataset, Dataset, Dataset | None]:
     """(stats, train, test, val) datasets of the model's kind: windows of every frame (closed loop) or first frames.
     aug: the training augmentation (validation and test never augment). windows_per_epoch (closed loop): an epoch
-    draws as many windows as there are training episodes ("episodes") or every window once ("all")."""
+    draws as many windows as there are training episodes ("episodes") or every window once ("all").
+    corrections_only (closed loop, HG-DAgger): an episode with an operator's flag gives training windows only where
+    the operator drove. stats: the normalisation to keep (a warm start's), else computed
+    from the training episodes."""
     if cfg.closed_loop:
         w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz, cfg.target, cfg.use_image)
         if cfg.target == "recovery" and not any_reference(data, train_names):
             raise AdlError(f"{data}: --target recovery, but no training episode has a reference stream "
                            "(frames/reference_stream: bags recorded with record --recoveries); use --target command")
-        stats = (compute_action_stats(data, train_names) if cfg.target == "action"
-                 else compute_window_stats(data, train_names, w))
+        stats = stats or (compute_action_stats(data, train_names) if cfg.target == "action"
+                          else compute_window_stats(data, train_names, w))
 
         def windows(names: list[str], **kw: object) -> WindowDataset:
             return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, seed=seed, cameras=cfg.cameras,
                                  **kw)
 
-        train_ds = windows(train_names, augment=aug, draws_per_epoch=len(train_names), open_files=open_files)
+        train_w = replace(w, corrections_only=corrections_only)
+        train_ds = WindowDataset(data, train_names, stats, cfg.image_size, train_w, cfg.use_depth, augment=aug,
+                                 draws_per_epoch=len(train_names), seed=seed, cameras=cfg.cameras,
+                                 open_files=open_files)
         if windows_per_epoch == "all":
             train_ds.draws = len(train_ds.items)
         return (stats, train_ds,
                 windows(split["test"] or train_names, frames_per_episode=2),
                 windows(val_names, frames_per_episode=4) if val_names else None)
-    stats = compute_stats(str(data), train_names)
+    stats = stats or compute_stats(str(data), train_names)
 
     def firsts(names: list[str], **kw: object) -> TrajectoryDataset:
         return TrajectoryDataset(str(data), names, stats, cfg.image_size, cfg.use_depth, cameras=cfg.cameras, **kw)

@@ -40,12 +40,16 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
           val_fraction: float = 0.1, val_every: int = 5, augment: bool = True, workers: int = 0,
           device: torch.device | None = None, precision: str = "fp32", ranks: Ranks | None = None,
           windows_per_epoch: str = "episodes", save_every: int = 0, open_files: int = OPEN_FILES,
-          resume_dir: Path | None = None) -> dict:
+          resume_dir: Path | None = None, init: Path | None = None, corrections_only: bool = False,
+          steps: int | None = None) -> dict:
     """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests).
     resume_dir: where a run in progress keeps its checkpoints (default: out; see publish). batch_size is the global
     batch: under torchrun (ranks) each process takes batch_size / world of it; rank 0
     validates, logs and writes the checkpoints. save_every: also keep the EMA weights of every this many epochs
-    in <out>/checkpoints/ (the benchmark's learning curves)."""
+    in <out>/checkpoints/ (the benchmark's learning curves). init: a trained model's checkpoint to start from (its
+    EMA weights and normalisation; a DAgger round goes on from the previous round's policy), with a fresh optimiser
+    and schedule over this run's epochs. corrections_only: see training.data.datasets. steps: the optimiser steps
+    in all instead of `epochs` (as many epochs as that takes: one budget whatever the number of episodes)."""
     device, ranks = device or torch.device("cpu"), ranks or Ranks()
     out.mkdir(parents=True, exist_ok=True)
     work = resume_dir or out
@@ -54,23 +58,31 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     check_run(split, split_path, batch_size, ranks)
     train_names, val_names, stored_size, train_keys = training_episodes(data, split, cfg, val_fraction, seed)
     aug = Augment(stored_size, crop=cfg.crop) if augment else None  # windows without images skip it
+    start = warm_start(init, cfg) if init is not None else None
     stats, train_ds, test_ds, val_ds = datasets(data, cfg, split, train_names, val_names, aug, seed,
-                                                windows_per_epoch, open_files)
+                                                windows_per_epoch, open_files, corrections_only,
+                                                start["stats"] if start else None)
     norm = Normalizer(stats)
     val_obs, val_px_target = validation_set(val_ds, norm, cfg, device) if ranks.main else (None, None)
     loader = training_batches(train_ds, cfg, batch_size, seed, workers, device, ranks)
     test_loader = DataLoader(TrainingSamples(test_ds, seed), batch_size=batch_size,
                              sampler=EpochSampler(len(test_ds), shuffle=False), num_workers=0)
     steps_per_epoch = len(loader)
+    if steps:
+        epochs = math.ceil(steps / steps_per_epoch)
     hparams = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay,
                "warmup_steps": warmup_steps, "grad_clip": grad_clip, "seed": seed, "data": str(data),
                "split": train_keys,  # by recording, so a run resumes on the same scenes re-recorded elsewhere
                "val_fraction": val_fraction, "val_every": val_every, "augment": augment,
-               "windows_per_epoch": windows_per_epoch}
+               "windows_per_epoch": windows_per_epoch,
+               **({"init": str(init), "corrections_only": corrections_only} if init or corrections_only else {})}
 
     torch.manual_seed(seed)
     policy, model, opt, sched, ema = optimisation(cfg, device, ranks, lr, weight_decay, warmup_steps,
                                                   epochs * steps_per_epoch)
+    if start is not None:
+        policy.load_state_dict(start["ema"])
+        ema.model.load_state_dict(start["ema"])
     last = work / "last.pt"
     history, start_epoch = resume(last, cfg, hparams, stats, policy, ema, opt, sched,
                                   replace_stale=resume_dir is not None)
@@ -179,6 +191,24 @@ def same_stats(a: dict, b: dict) -> bool:
     """Normalisation statistics of the same data: equal up to the float noise between hosts."""
     return set(a) == set(b) and all(np.shape(a[k]) == np.shape(b[k]) and np.allclose(a[k], b[k], rtol=STATS_RTOL,
                                                                                        atol=1e-9) for k in a)
+
+
+def warm_start(path: Path, cfg: ModelConfig) -> dict:
+    """The checkpoint a run starts from (init): a trained model of the same network and format. Its target may be
+    "command" where this run's is "recovery" (the same waypoints, labelled by the demonstrator's law)."""
+    if not path.is_file():
+        raise AdlError(f"--init {path}: no such checkpoint; train the model first")
+    ck = load_checkpoint(path)
+    if not isinstance(ck, dict) or not {"config", "ema", "stats"} <= set(ck):
+        raise AdlError(f"--init {path}: not an adlpipe policy checkpoint (needs config, ema and stats)")
+    mine, theirs = cfg.to_dict(), dict(ck["config"])
+    if {mine.get("target"), theirs.get("target")} <= {"command", "recovery"}:
+        theirs["target"] = mine.get("target")
+    differ = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+    if differ:
+        raise AdlError(f"--init {path}: a model of other settings ({', '.join(differ[:4])} differ); warm-start "
+                       "from the same model, closed loop, frames, steps and rate")
+    return ck
 
 
 def resume(last: Path, cfg: ModelConfig, hparams: dict, stats: dict, policy: Policy, ema: EMA,

@@ -1,0 +1,94 @@
+"""Labelled rollouts (DAgger, HG-DAgger): a closed-loop policy rolled out on the training split's scenes, each
+rollout a bag with the expert's plans and the scene's demonstrated path (and, with an operator, the intervention
+flag), for ingest -> train --target recovery like any lab's bags (adlpipe.sim.dagger; docs/science/dagger.md).
+Never the test split's scenes: the rollouts join the training data."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..dataset import schema
+from ..dataset.splits import load_split
+from ..errors import AdlError
+from ..runtime import Placement
+from ..workers import stoppable_pool
+from .replay import LoopOptions, camera_rate, closed_loop_one, closed_loop_scenes
+
+
+@dataclass(frozen=True)
+class RolloutConfig:
+    """What `adlpipe rollout` runs: one model on the training split's scenes."""
+
+    model: Path  # a closed-loop model folder
+    data: Path
+    split: Path
+    out: Path  # the bags' folder
+    checkpoint: str = "best.pt"
+    execute: int = 8  # Ta
+    steps: int = 1  # sampler steps (FM-1, DP-16: the decision's)
+    seed: int = 0  # the samplers' noise (a round's own)
+    operator: object | None = None  # adlpipe.sim.dagger.OperatorRule: HG-DAgger; None: DAgger (the expert labels)
+    time_limit: float = 1.0  # times the demonstration's duration
+    workers: int = 2
+    limit: int | None = None  # at most this many scenes (the first of the split's train list)
+
+
+def run_rollouts(cfg: RolloutConfig) -> dict:
+    """Roll the model out on every training scene and write each rollout's bag; returns the summary."""
+    split = load_split(cfg.split)
+    names = list(split["train"])[:cfg.limit]
+    if not names:
+        raise AdlError(f"{cfg.split}: no train episodes to roll out on")
+    with schema.open_dataset(cfg.data, names) as f:
+        eps = [schema.read_episode(f, n) for n in names]
+        rates = [camera_rate(f, n) for n in names]
+    scenes = closed_loop_scenes(cfg.data, eps, rates)
+    missing = [s.name for s in scenes if s.command is None]
+    if missing:
+        raise AdlError(f"{cfg.data}: episode {missing[0]} has no command stream (frames/action): the expert labels "
+                       "from the demonstrated command path; ingest with the topic map's action topic")
+    label = cfg.model.name
+    jobs = [(label, str(cfg.model), cfg.checkpoint, sc, cfg.steps, cfg.execute, cfg.seed, Placement(), None,
+             cfg.time_limit, None, LoopOptions(trial_dir=str(cfg.out), trial_index=i, labelled=True,
+                                               operator=cfg.operator))
+            for i, sc in enumerate(scenes)]
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    with stoppable_pool(cfg.workers) as pool:
+        for _label, name, task, ok, diag in tqdm(pool.imap(closed_loop_one, jobs), total=len(jobs),
+                                                 desc=f"rollout {label}", unit="rollout", file=sys.stderr,
+                                                 disable=None):
+            rows.append({"scene": name, "task": task, "success": bool(ok), "plans": diag["plans"],
+                         "operator_plans": diag.get("operator_plans", 0),
+                         "replans_off_path": diag.get("replans_off_path")})
+    return summary(cfg, rows)
+
+
+def summary(cfg: RolloutConfig, rows: list[dict]) -> dict:
+    """Per rollout and in all: success, re-plans, the operator's share of them and its seconds at the wheel."""
+    plans = sum(r["plans"] for r in rows)
+    taken = sum(r["operator_plans"] for r in rows)
+    return {"model": str(cfg.model), "checkpoint": cfg.checkpoint, "execute": cfg.execute, "steps": cfg.steps,
+            "seed": cfg.seed, "operator": None if cfg.operator is None else vars(cfg.operator),
+            "rollouts": len(rows), "success": float(np.mean([r["success"] for r in rows])),
+            "plans": plans, "operator_plans": taken,
+            "operator_s": round(taken * cfg.execute / rate_of(cfg.model, cfg.checkpoint), 1),
+            "labelled_plans": taken if cfg.operator is not None else plans, "per_rollout": rows}
+
+
+def rate_of(model: Path, checkpoint: str) -> float:
+    from ..policy.checkpoint import load_checkpoint
+
+    return float(load_checkpoint(model / checkpoint)["config"]["rate_hz"])
+
+
+def write_summary(path: Path, s: dict) -> None:
+    from ..atomic import write_text_atomic
+
+    write_text_atomic(path, json.dumps(s, indent=1) + "\n")
