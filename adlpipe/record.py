@@ -99,6 +99,8 @@ def write_episode_bag(st, path: Path, fmt: str, image_format: str, depth_format:
         extra = [(topic, names, stream) for topic, (names, stream) in st.extra_states.items()]
         if topics.reference and st.reference:  # a disturbed demonstrator's own path (record --recoveries)
             extra.append((topics.reference, REFERENCE_NAMES, st.reference))
+        if topics.expert_phase and st.expert_phase:  # a labelled rollout's expert phase (adlpipe.sim.dagger)
+            extra.append((topics.expert_phase, ["phase_s"], [(t, [x]) for t, x in st.expert_phase]))
         for topic, names, stream in ((topics.state, st.state_names, st.states),
                                      (topics.action, st.action_names, st.actions), *extra):
             for t, values in stream if topic else []:

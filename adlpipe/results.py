@@ -24,6 +24,8 @@ from .atomic import atomic_path, write_text_atomic
 from .cli import Parser
 from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import claims
+from .evaluation.dagger import ARMS as DAGGER_ARMS
+from .evaluation.dagger import dagger_lines, merged
 from .evaluation.latency import latency_lines, serve_lines
 from .evaluation.outcomes import breakdown_lines
 from .evaluation.person import motion_training_lines, moving_person_lines
@@ -76,7 +78,15 @@ CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_l
                      "metrics/replay_latency_still_details.json": "replay_latency_still_details.json",
                      "metrics/replay_latency_moving_details.json": "replay_latency_moving_details.json",
                      # the open-loop reference: the default pipeline's replay of the same scenes in that run
-                     "../../metrics/replay_details.json": "replay_open_details.json"}
+                     "../../metrics/replay_details.json": "replay_open_details.json",
+                     # DAgger and HG-DAgger: each arm's replays (the pair's and BC's) and each round's rollouts
+                     **{f"metrics/dagger/{kind}{arm}_details.json": f"dagger/{kind}{arm}_details.json"
+                        for arm, _, _ in DAGGER_ARMS
+                        for kind in ("replay_dagger_", "replay_moving_dagger_", "replay_dagger_bc_",
+                                     "replay_moving_dagger_bc_")},
+                     **{f"metrics/dagger/{r}_{m}.json": f"dagger/{r}_{m}.json"
+                        for r in ("dagger_rollout_r1", "dagger_rollout_r2", "hg_rollout_r1")
+                        for m in ("fm_cnn", "dp_cnn", "bc_cnn")}}
 # What pipelines/moving_person keeps (-> results/moving_person): the trio trained with the person moving, replayed
 MOVING_PERSON_FILES = {"metrics/replay_moving_details.json": "replay_moving_details.json",
                        "metrics/replay_still_details.json": "replay_still_details.json",
@@ -179,6 +189,8 @@ def tables(results: Path) -> dict[str, str]:
             out["moving-trained"] = motion_training_lines(
                 _load(moving[0]), _load(trained / "replay_moving_details.json"), ol,
                 _load(trained / "replay_still_details.json"))
+        out.update(dagger_tables(closed / "dagger", ol, _load(closed / "replay_moving_open_details.json")
+                                 if (closed / "replay_moving_open_details.json").exists() else None))
         latency = [closed / f"replay_latency_{w}_details.json" for w in ("still", "moving")]
         if latency[0].exists():
             out["latency"] = latency_lines(_load(latency[0]), _load(latency[1]) if latency[1].exists() else None)
@@ -187,6 +199,25 @@ def tables(results: Path) -> dict[str, str]:
         out["serve-bench"] = serve_lines(_load(serve), _load(load) if load.exists() else None)
     out["table2"] = table2_lines(results.parent / "pipelines")  # the benchmark pipelines' committed results
     return {k: "\n".join(v) for k, v in out.items() if v}
+
+
+def dagger_tables(kept: Path, still_open: dict, moving_open: dict | None) -> dict[str, list[str]]:
+    """The DAgger rounds' tables, the person still and moving, from what results/closed_loop/dagger keeps."""
+    if not kept.is_dir():
+        return {}
+    rollouts = {p.stem: _load(p) for p in kept.glob("*_rollout_*.json")}
+    out = {}
+    for name, prefix, open_loop, person in (("dagger", "replay_dagger_", still_open, "still"),
+                                            ("dagger-moving", "replay_moving_dagger_", moving_open, "moving")):
+        arms = {}
+        for arm, _, _ in DAGGER_ARMS:
+            parts = [kept / f"{prefix}{arm}_details.json", kept / f"{prefix}bc_{arm}_details.json"]
+            found = [_load(p) for p in parts if p.exists()]
+            if found:
+                arms[arm] = merged(*found)
+        if arms and open_loop is not None:
+            out[name] = dagger_lines(arms, open_loop, rollouts, person)
+    return out
 
 
 def study_tables(study: Path) -> dict[str, list[str]]:

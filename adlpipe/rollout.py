@@ -37,7 +37,8 @@ def main(argv: list[str] | None = None) -> int:
                    "demonstrated path for HOLD_S, and drives until the command is within BACK_CM (e.g. 2 0.3 0.5)")
     p.add_argument("--time-limit", type=float_range(0.1), default=1.0,
                    help="rollouts run this many times the demonstration's duration (default 1)")
-    p.add_argument("--limit", type=int_range(1), default=None, help="at most this many training scenes")
+    p.add_argument("--limit", type=int_range(1), default=None,
+                   help="at most this many training scenes, every task's in turn (a smaller round)")
     p.add_argument("--workers", type=int_range(1), default=2)
     p.add_argument("--summary", type=Path, default=None, help="JSON: per rollout, success and the operator's share")
     args = p.parse_args(argv)

@@ -15,7 +15,13 @@ from conftest import one_line_error, run_module
 
 from adlpipe.bags.reader import BagSource
 from adlpipe.dataset import schema
-from adlpipe.dataset.loader import WindowDataset, Windows, command_series, reference_series, relative_waypoints
+from adlpipe.dataset.loader import (
+    WindowDataset,
+    Windows,
+    command_series,
+    expert_reference,
+    relative_waypoints,
+)
 from adlpipe.record import EXPERT_PLAN_TOPIC, PLAN_TOPIC
 from adlpipe.sim.dagger import Expert, Operator, OperatorRule
 
@@ -62,7 +68,8 @@ def test_every_replan_of_a_rollout_is_labelled_by_the_expert_as_training_labels_
     with h5py.File(rollouts["dagger"]["h5"]) as f:
         g = next(iter(f[schema.EPISODES].values()))
         t0 = float(g.attrs["stamp0_ns"]) / 1e9
-        ref_t, ref_p = reference_series(g, "rollout")
+        ref_t, ref_p, phase_t, phase = expert_reference(g, "rollout")
+        assert np.all(np.diff(phase) >= 0) and phase[-1] > 0  # the expert's phase goes on along the path
         ct, cmd = command_series(g, "rollout")
         frame_t = g["frames/t"][()]
         for i, (stamp, waypoints) in enumerate(expert[1:], 1):
@@ -73,12 +80,35 @@ def test_every_replan_of_a_rollout_is_labelled_by_the_expert_as_training_labels_
             # previous plan's 8th waypoint, Ta 8; the command stream samples it at 100 Hz)
             now = executed[i - 1][1][7][None]
             label = relative_waypoints(np.array([t]), now, ct, cmd, 16, 10.0, g["K"][()], g["T_base_camera"][()],
-                                       reference=(ref_t, ref_p))[0, :, 2:] + now
+                                       reference=(ref_t, ref_p, phase_t, phase))[0, :, 2:] + now
             np.testing.assert_allclose(label, waypoints, atol=1e-5)  # what train --target recovery learns there
-            # the expert goes back to the demonstrated path: at the plan's end 0.5 % of the offset is left
-            ref_end = np.array([np.interp(t + 1.6, ref_t, ref_p[:, d]) for d in range(3)])
-            ref_now = np.array([np.interp(t, ref_t, ref_p[:, d]) for d in range(3)])
+            # the expert goes back to the demonstrated path from the phase reached: at the plan's end 0.5 % of the
+            # offset is left
+            at = np.interp(t, phase_t, phase)
+            ref_end = np.array([np.interp(at + 1.6, ref_t, ref_p[:, d]) for d in range(3)])
+            ref_now = np.array([np.interp(at, ref_t, ref_p[:, d]) for d in range(3)])
             assert np.linalg.norm(waypoints[-1] - ref_end) <= 0.01 * np.linalg.norm(now[0] - ref_now) + 1e-4
+
+
+def test_the_expert_leads_a_lagging_arm_on_along_the_path_not_to_where_the_timetable_is(ingested: Path) -> None:
+    from adlpipe.recovery import recovering_plan
+
+    with h5py.File(ingested) as f:
+        g = f[schema.EPISODES][schema.episode_names(f)[0]]
+        ref_t, ref_p = command_series(g, "demo")
+    expert = Expert(ref_t, ref_p, 16, 10.0)
+    start = ref_p[0]
+    for t in np.arange(0.0, 1.0, 0.01):  # the arm stood still at the start for a second
+        assert expert.track(t, start) == 0.0
+    ahead = np.arange(1, 17) / 10.0
+    along = np.stack([np.interp(ahead, ref_t, ref_p[:, d]) for d in range(3)], 1)
+    np.testing.assert_allclose(expert.plan(1.0, start), along, atol=1e-9)  # the demonstration's first 1.6 s
+    timed = recovering_plan(np.array([1.0]), start[None], ref_t, ref_p, 1.0 + ahead[None])[0]
+    assert np.linalg.norm(timed[2] - start) > 2 * np.linalg.norm(along[2] - start)  # the timetable's dash
+    halfway = np.array([np.interp(ref_t[-1] / 2, ref_t, ref_p[:, d]) for d in range(3)])
+    assert expert.track(1.5, halfway) <= 1.5  # half a second later the arm is halfway: at most 3x the pace
+    phase = expert.track(3.0, halfway)  # given the time, the phase reaches the point the arm is at
+    assert np.linalg.norm(expert.reference(phase) - halfway) < 2e-3
 
 
 def test_the_operator_takes_over_after_hold_s_off_the_path_and_hands_back(ingested: Path) -> None:

@@ -171,7 +171,8 @@ def check_types(bag: Path, topics: dict, tm: TopicMap) -> None:
             tm.depth: DEPTH_TYPES, tm.affordance: {"sensor_msgs/msg/Image"},
             tm.joints: {"sensor_msgs/msg/JointState"}, tm.task: {"std_msgs/msg/String"},
             tm.state: {"sensor_msgs/msg/JointState"}, tm.action: {"sensor_msgs/msg/JointState"},
-            tm.reference: {"sensor_msgs/msg/JointState"}, tm.intervention: {"std_msgs/msg/Bool"}}
+            tm.reference: {"sensor_msgs/msg/JointState"}, tm.intervention: {"std_msgs/msg/Bool"},
+            tm.expert_phase: {"sensor_msgs/msg/JointState"}}
     for topic, types in want.items():
         if topic and topic in topics and AS_ROS.get(topics[topic].msgtype, topics[topic].msgtype) not in types | {"?"}:
             expected = " or ".join(sorted(types))
@@ -319,8 +320,8 @@ class _Streams:
                 self.joint_pos.append(pos)
         elif topic == tm.task and self.task is None:
             self.task = str(decode().data)
-        if topic in (tm.state, tm.action, tm.reference):  # may also be the joints topic
-            key = "state" if topic == tm.state else "action" if topic == tm.action else "reference"
+        if topic in (tm.state, tm.action, tm.reference, tm.expert_phase):  # may also be the joints topic
+            key = {tm.state: "state", tm.action: "action", tm.reference: "reference"}.get(topic, "expert_phase")
             self.series.setdefault(key, Series()).add(decode(), self.where(topic))
 
     def _other_camera(self, topic: str, decode: object) -> None:

@@ -32,6 +32,9 @@ class TopicMap:
     # An operator's take-over flag (std_msgs/Bool, true from when the person drives until false: HG-DAgger rollouts,
     # LeRobot's `intervention`); stored per frame as the last value at or before it (false before any). Optional.
     intervention: str | None = "/adl/intervention"
+    # A labelled rollout's expert phase (sensor_msgs/JointState, one position: s along the reference path; adlpipe
+    # rollout): `train --target recovery` labels each frame from the reference path at that phase. Optional.
+    expert_phase: str | None = "/adl/expert_phase"
     tf: str = "/tf"
     tf_static: str = "/tf_static"
     base_frame: str = "base_link"
@@ -125,7 +128,7 @@ class TopicMap:
 
     def optional_topics(self) -> list[str]:
         return [t for t in (self.depth, self.affordance, self.joints, self.task, self.tf_static, self.state,
-                            self.action, self.reference, self.intervention,
+                            self.action, self.reference, self.intervention, self.expert_phase,
                             *(c.depth for c in self.extra_cameras)) if t]
 
 

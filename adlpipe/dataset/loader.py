@@ -76,15 +76,19 @@ def command_series(g: h5py.Group, where: str) -> tuple[np.ndarray, np.ndarray]:
 def relative_waypoints(t_now: np.ndarray, now: np.ndarray, series_t: np.ndarray, series_p: np.ndarray,
                        horizon: int, rate_hz: float, K: np.ndarray, T: np.ndarray, lens: Lens = PINHOLE,
                        size: int | None = None,
-                       reference: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+                       reference: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
     """(F, horizon, 5): the positions of a series (the commanded or the measured end effector) at t_now + 1/rate ..
     t_now + horizon/rate, the last one held after the end, relative to `now` (F, 3): pixels (u, v) from its
     projection through the camera's lens, metres (x, y, z). The closed-loop policies' target format. reference
     (stamps, positions) of a disturbed demonstrator's own path: instead of the series, the plan it would follow
-    back onto that path from `now` (adlpipe.recovery)."""
-    future = np.asarray(t_now, float)[:, None] + np.arange(1, horizon + 1)[None] / rate_hz
+    back onto that path from `now` (adlpipe.recovery); with (phase stamps, phases) after them (a labelled rollout's,
+    adlpipe.sim.dagger), from the phase of the path reached at each frame instead of the frame's time."""
+    ahead = np.arange(1, horizon + 1)[None] / rate_hz
+    future = np.asarray(t_now, float)[:, None] + ahead
     if reference is not None:
-        xyz = recovering_plan(t_now, now, reference[0], reference[1], future)
+        ref_t, ref_p, *phase = reference
+        at = np.interp(t_now, phase[0], phase[1]) if phase else np.asarray(t_now, float)
+        xyz = recovering_plan(at, now, ref_t, ref_p, at[:, None] + ahead)
     else:
         xyz = np.stack([np.interp(future, series_t, series_p[:, d]) for d in range(3)], -1)  # (F, Tp, 3)
     now = np.asarray(now, float)
@@ -117,6 +121,19 @@ def reference_series(g: h5py.Group, where: str) -> tuple[np.ndarray, np.ndarray]
     return t, ref[:, :3]
 
 
+def expert_reference(g: h5py.Group, where: str) -> tuple[np.ndarray, ...]:
+    """The reference a frame's recovery label is made from: (stamps, positions) of the path, and where a labelled
+    rollout recorded it, (stamps, phases) of the expert's phase on it (frames/expert_phase_stream)."""
+    ref = reference_series(g, where)
+    fr = g["frames"]
+    if "expert_phase_stream" not in fr:
+        return ref
+    t, phase = fr["expert_phase_stream_t"][()], fr["expert_phase_stream"][()].astype(float).reshape(-1)
+    if len(t) != len(phase) or not np.isfinite(phase).all():
+        raise AdlError(f"{where}: frames/expert_phase_stream is not one finite phase per stamp")
+    return (*ref, t, phase)
+
+
 def any_reference(index: str | Path, names: list[str]) -> bool:
     """Does any of the episodes carry a disturbed demonstrator's reference stream?"""
     files = _EpisodeFiles(str(index), list(names))
@@ -134,7 +151,7 @@ def compute_window_stats(index: str | Path, names: list[str], windows: Windows) 
         g = files.group(n)
         where = f"{files.files[n]}: episode {n}"
         series_t, series_p, now = anchor_series(g, windows.target, where)
-        ref = reference_series(g, where) if windows.target == "recovery" else None
+        ref = expert_reference(g, where) if windows.target == "recovery" else None
         rel = relative_waypoints(g["frames/t"][()], now, series_t, series_p, windows.horizon, windows.rate_hz,
                                  g["K"][()], g["T_base_camera"][()], read_lens(g),
                                  int(g["rgb"].shape[1]), ref).reshape(-1, ACTION_DIM)
@@ -482,7 +499,7 @@ class WindowDataset(Dataset):
             where = f"{self.files.files[self.names[e]]}: episode {self.names[e]}"
             series_t, series_p, now = anchor_series(g, self.w.target, where)
             m.update(t=fr["t"][()], state=frame_state(fr), series_t=series_t, series_p=series_p, now=now,
-                     ref=reference_series(g, where) if self.w.target == "recovery" else None,
+                     ref=expert_reference(g, where) if self.w.target == "recovery" else None,
                      K=g["K"][()], T=g["T_base_camera"][()], lens=read_lens(g), size=int(g["rgb"].shape[1]))
         if len(self._metas) >= 256:
             self._metas.pop(next(iter(self._metas)))

@@ -95,7 +95,7 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
 
     streams = trial_streams(sc, cfg.image_size) if opts.trial_dir else None
     spec = spec_from_objects(sc.task, sc.object_names, sc.objects, sc.person)
-    labelled, reference = None, None
+    labelled, expert = None, None
     if opts.labelled:
         from ..sim.dagger import Expert, LabelledRollout, Operator
 
@@ -103,13 +103,12 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
         expert = Expert(ref_t, ref_p, cfg.horizon, cfg.rate_hz)
         plan = labelled = LabelledRollout(plan, expert, streams, execute,
                                           Operator(expert, opts.operator) if opts.operator else None)
-        reference = lambda t: np.array([np.interp(t, ref_t, ref_p[:, d]) for d in range(3)])  # noqa: E731
     try:
         run = replay_closed_loop(spec, plan, time_limit * sc.duration_s, cfg.rate_hz, execute, cfg.n_obs,
                                  sc.rgb.shape[0], sc.camera_hz,
                                  anchor="measured" if (oracle or cfg.target) == "ee" else "command",
                                  ensemble=ensemble, latency_s=opts.latency_s, execution=opts.execution,
-                                 streams=streams, reference=reference)
+                                 streams=streams, expert=expert)
     finally:
         if client is not None:
             client.close()

@@ -36,16 +36,17 @@ class RolloutConfig:
     operator: object | None = None  # adlpipe.sim.dagger.OperatorRule: HG-DAgger; None: DAgger (the expert labels)
     time_limit: float = 1.0  # times the demonstration's duration
     workers: int = 2
-    limit: int | None = None  # at most this many scenes (the first of the split's train list)
+    limit: int | None = None  # at most this many scenes, spread over the tasks
 
 
 def run_rollouts(cfg: RolloutConfig) -> dict:
     """Roll the model out on every training scene and write each rollout's bag; returns the summary."""
     split = load_split(cfg.split)
-    names = list(split["train"])[:cfg.limit]
+    names = list(split["train"])
     if not names:
         raise AdlError(f"{cfg.split}: no train episodes to roll out on")
     with schema.open_dataset(cfg.data, names) as f:
+        names = spread(names, {n: str(f[schema.EPISODES][n].attrs["task"]) for n in names}, cfg.limit)
         eps = [schema.read_episode(f, n) for n in names]
         rates = [camera_rate(f, n) for n in names]
     scenes = closed_loop_scenes(cfg.data, eps, rates)
@@ -68,6 +69,18 @@ def run_rollouts(cfg: RolloutConfig) -> dict:
                          "operator_plans": diag.get("operator_plans", 0),
                          "replans_off_path": diag.get("replans_off_path")})
     return summary(cfg, rows)
+
+
+def spread(names: list[str], tasks: dict[str, str], limit: int | None) -> list[str]:
+    """At most `limit` of the names, every task's in turn (its first, then its second, ...), in the split's order."""
+    if limit is None or limit >= len(names):
+        return names
+    by_task: dict[str, list[str]] = {}
+    for n in names:
+        by_task.setdefault(tasks[n], []).append(n)
+    turns = sorted((i, t) for t, ns in by_task.items() for i in range(len(ns)))
+    keep = {by_task[t][i] for i, t in turns[:limit]}
+    return [n for n in names if n in keep]
 
 
 def summary(cfg: RolloutConfig, rows: list[dict]) -> dict:

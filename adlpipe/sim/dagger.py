@@ -2,9 +2,13 @@
 rollout leaves the path (HG-DAgger, Kelly et al. 2019), in the ADL world.
 
 The expert is the demonstrator's own law (adlpipe.recovery): from wherever the command is, back onto the scene's
-demonstrated path, the offset fading, and on along it to the goal. Its plan at a re-plan is what `train --target
-recovery` makes the label of that frame from the bag's reference stream, so a rollout's bag needs no label of its own
-to train on; the expert's plans go on a topic of their own (/adl/expert_plan) for anyone who inspects the data.
+demonstrated path, the offset fading, and on along it to the goal, at the demonstration's pace from the point of the
+path the rollout has reached (its phase), not from where the demonstration was at that time: a policy that lags
+behind the demonstration's timetable is led on along the path, not told to dash to catch up (measured: timed labels
+were mostly that dash, docs/science/dagger.md). The phase is tracked from the command as the rollout goes, never
+back and at most MAX_PHASE_RATE times the demonstration's pace, and recorded (/adl/expert_phase); with the scene's
+demonstrated path (the reference topic) it is what `train --target recovery` makes each frame's label from, so the
+label of a re-plan's frame is the expert's plan there, which also goes on a topic of its own (/adl/expert_plan).
 
 The operator watches the executed commands: off the path by more than `off_cm` for `hold_s`, it takes over and
 drives with the expert's plans until the command is back within `back_cm`; the bag says when on a Bool topic (the
@@ -27,6 +31,7 @@ if TYPE_CHECKING:
     from .episode import Streams
 
 PATH_SPACING_M = 0.001  # the reference path resampled this finely: distances to it are within half of it
+MAX_PHASE_RATE = 3.0  # the phase advances at most this many times as fast as the clock
 
 
 @dataclass(frozen=True)
@@ -45,11 +50,28 @@ class Expert:
         self.ref_t, self.ref_p = np.asarray(ref_t, float), np.asarray(ref_p, float)[:, :3]
         self.horizon, self.rate_hz = horizon, rate_hz
         self._tree = cKDTree(dense_path(self.ref_p))
+        self.phase, self._clock = 0.0, 0.0
+
+    def reference(self, t: float) -> np.ndarray:
+        """The demonstrated path at time t of the demonstration (held at its end)."""
+        return np.array([np.interp(t, self.ref_t, self.ref_p[:, d]) for d in range(3)])
+
+    def track(self, t: float, now: np.ndarray) -> float:
+        """The phase (s along the demonstration) of the command `now` at clock t: the point of the path nearest it
+        among those reachable since the last call (never back, at most MAX_PHASE_RATE times the clock's pace)."""
+        reach = self.phase + MAX_PHASE_RATE * max(t - self._clock, 0.0)
+        candidates = np.linspace(self.phase, min(reach, float(self.ref_t[-1])), 32)
+        path = np.stack([np.interp(candidates, self.ref_t, self.ref_p[:, d]) for d in range(3)], -1)
+        self.phase = float(candidates[int(np.argmin(np.linalg.norm(path - np.asarray(now, float), axis=1)))])
+        self._clock = max(self._clock, t)
+        return self.phase
 
     def plan(self, t: float, now: np.ndarray) -> np.ndarray:
-        """(horizon, 3): the expert's waypoints at t + 1/rate .. t + horizon/rate from the command `now` at t."""
-        future = t + np.arange(1, self.horizon + 1)[None] / self.rate_hz
-        return recovering_plan(np.array([t]), np.asarray(now, float)[None], self.ref_t, self.ref_p, future)[0]
+        """(horizon, 3): the expert's waypoints 1/rate .. horizon/rate s after clock t from the command `now`:
+        back onto the path and on from the phase the command has reached."""
+        phase = self.track(t, now)
+        future = phase + np.arange(1, self.horizon + 1)[None] / self.rate_hz
+        return recovering_plan(np.array([phase]), np.asarray(now, float)[None], self.ref_t, self.ref_p, future)[0]
 
     def off_path(self, points: np.ndarray) -> np.ndarray:
         """Each point's distance (m) from the demonstrated path (anywhere along it, not at a time)."""

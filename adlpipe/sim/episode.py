@@ -171,6 +171,7 @@ class Streams:
     # drove from each re-plan on (t, True: the operator)
     expert_plans: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)
     interventions: list[tuple[float, bool]] = field(default_factory=list)
+    expert_phase: list[tuple[float, float]] = field(default_factory=list)  # (t, the expert's phase s on the path)
 
 
 def camera_intrinsics(model: mujoco.MjModel, width: int, height: int) -> np.ndarray:
@@ -368,8 +369,7 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float, np.n
                        duration: float, rate_hz: float, execute: int, n_obs: int, image_size: int,
                        camera_hz: float, anchor: str = "command", ensemble: float | None = None,
                        latency_s: float | None = 0.0, execution: str = "sync",
-                       streams: Streams | None = None,
-                       reference: Callable[[float], np.ndarray] | None = None) -> ClosedLoopRun:
+                       streams: Streams | None = None, expert: object | None = None) -> ClosedLoopRun:
     """The seed's closed loop: from the last `n_obs` camera frames (rgb, depth, tcp position and gripper joint when
     rendered) the policy plans the next waypoints at rate_hz (plan(frames, progress, anchor) -> (Tp, 3) waypoints in
     the base frame, the k-th for k / rate_hz s after the observation; progress: the seconds the arm has spent
@@ -390,7 +390,8 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float, np.n
     it goes on with the previous plan's waypoints after the executed ones (holding the last once they run out), and
     the new plan is joined at the waypoint for the time it arrives (LeRobot's asynchronous inference). The first
     plan is always waited for. streams: record the rollout into it (camera, joints, tcp, command, objects, plans),
-    with reference(t), the scene's demonstrated path, beside the command (a labelled rollout's, adlpipe.sim.dagger)."""
+    expert (a labelled rollout's, adlpipe.sim.dagger.Expert): the scene's demonstrated path and the expert's phase
+    on it are recorded beside the command."""
     if ensemble is not None and execute != 1:
         raise ValueError("temporal ensembling re-plans at every waypoint: execute must be 1")
     if execution not in ("sync", "async"):
@@ -403,7 +404,7 @@ def replay_closed_loop(spec: SceneSpec, plan: Callable[[list[Frame], float, np.n
     next_frame = [0.0]
     tcp_path: list[np.ndarray] = []
     commands: list[np.ndarray] = []
-    record = _StreamRecorder(ctrl, streams, reference=reference) if streams is not None else None
+    record = _StreamRecorder(ctrl, streams, expert=expert) if streams is not None else None
 
     def on_step(t: float) -> None:
         monitor.step()
@@ -488,13 +489,15 @@ def _constant(p: np.ndarray) -> Callable[[float], np.ndarray]:
 class _StreamRecorder:
     """Fills a Streams at the recorder's rates (joints and command at joint_hz, tcp at tf_hz, camera and objects at
     each rendered frame): the demonstrator's recording and a closed-loop trial's, so both are the same kind of bag.
-    reference: the demonstrator's undisturbed path at t, kept beside the command (record --recoveries)."""
+    reference: the demonstrator's undisturbed path at t, kept beside the command (record --recoveries); expert (a
+    labelled rollout's): its demonstrated path as the reference, and its phase on it tracked from the command."""
 
     def __init__(self, ctrl: object, st: Streams, joint_hz: float = 100.0, tf_hz: float = 50.0,
-                 reference: Callable[[float], np.ndarray] | None = None) -> None:
+                 reference: Callable[[float], np.ndarray] | None = None, expert: object | None = None) -> None:
         m = ctrl.m  # type: ignore[attr-defined]
         self.ctrl, self.st, self.joint_dt, self.tf_dt = ctrl, st, 1.0 / joint_hz, 1.0 / tf_hz
-        self.reference = reference
+        self.reference = reference if expert is None else expert.reference  # type: ignore[attr-defined]
+        self.expert = expert
         self.qadr = [m.jnt_qposadr[m.joint(j).id] for j in st.joint_names]
         self.vadr = [m.jnt_dofadr[m.joint(j).id] for j in st.joint_names]
         self.objects = [n for n in st.spec.poses if n != "manikin"]
@@ -516,6 +519,8 @@ class _StreamRecorder:
             st.actions.append((t, np.append(c.target, c.gripper_command)))  # type: ignore[attr-defined]
             if self.reference is not None:
                 st.reference.append((t, self.reference(t)))
+            if self.expert is not None:  # where on the demonstrated path the command is (never back)
+                st.expert_phase.append((t, self.expert.track(t, c.target)))  # type: ignore[attr-defined]
             self.next["joint"] += self.joint_dt
         if t + 1e-9 >= self.next["tf"]:
             q = np.zeros(4)
