@@ -227,13 +227,20 @@ def ingest(bags: list[Path], output: Path, tm: TopicMap, n_waypoints: int = 32, 
             more = f" (and {len(errors) - 1} more bad bag(s))" if len(errors) > 1 else ""
             raise AdlError(errors[0] + more)
         new: dict[str, dict[str, str]] = {}
-        for _bag, rows, _note, _err in results:
+        first: dict[str, str] = {}  # key -> the bag it was first read from in this run
+        duplicates = []
+        for bag, rows, _note, _err in results:
             if rows and all(r["key"] in known or r["key"] in new for r in rows):
-                (tmp_dir / rows[0]["file"]).unlink()  # the same bag given twice is ingested once
+                (tmp_dir / rows[0]["file"]).unlink()  # the same recording given twice is ingested once: say so
+                duplicates.append(f"{bag}: the same recording as {first.get(rows[0]['key'], 'one')} (same sha256, "
+                                  f"episode {rows[0]['name']}); kept once")
                 continue
             new.update((r["key"], r) for r in rows)
-        notes = [f"{b}: {n}" for b, rows, n, _ in results if n and rows]
-        skipped = sum(1 for _b, rows, _n, err in results if not rows and not err)
+            first.update((r["key"], bag) for r in rows)
+        notes = [f"{b}: {n}" for b, rows, n, _ in results if n and rows] + duplicates
+        notes += [f"{b}: already in {output} (the same sha256); skipped" for b, rows, n, err in results
+                  if not rows and not err and n == "already ingested"]
+        skipped = sum(1 for _b, rows, _n, err in results if not rows and not err) + len(duplicates)
         counts = {"new": len(new), "skipped": skipped, "bad": len(errors), "errors": errors, "notes": notes}
         if new and share:
             shards.commit_share(output, run, tmp_dir, list(new.values()), n_waypoints, size)

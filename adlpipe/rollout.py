@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from .cli import SEED, Parser, float_range, int_range
+from .dvc_outputs import refuse_pipeline_outputs
 from .errors import AdlError, run_cli
 
 
@@ -41,7 +42,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="at most this many training scenes, every task's in turn (a smaller round)")
     p.add_argument("--workers", type=int_range(1), default=2)
     p.add_argument("--summary", type=Path, default=None, help="JSON: per rollout, success and the operator's share")
+    p.add_force()
+    p.io(inputs=["model", "data", "split"], outputs=["out", "summary"],
+         implied=lambda a: [a.data.with_name("split.json")] if a.split is None else [])
     args = p.parse_args(argv)
+    refuse_pipeline_outputs([args.out, args.summary], args.force)
     if not (args.model / f"{'best' if args.checkpoint == 'best' else 'model'}.pt").is_file():
         raise AdlError(f"{args.model}: no {args.checkpoint} checkpoint; train the model first")
     from .evaluation.rollouts import RolloutConfig, run_rollouts, write_summary

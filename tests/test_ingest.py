@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import shutil
 from pathlib import Path
 
 import h5py
@@ -95,6 +96,18 @@ def test_reingest_is_a_no_op(mcap_bags: list[Path], ingested: Path, tmp_path: Pa
     proc = run_module("ingest", *mcap_bags, "-o", copy, "--size", "64", check=True)
     assert "0 episode(s) added, 3 already present" in proc.stdout
     assert _sha(copy) == before
+    named = [ln for ln in proc.stderr.splitlines() if ln.startswith("note: ") and "already in" in ln]
+    assert sorted(ln.split(": ")[1] for ln in named) == sorted(map(str, mcap_bags))  # each one named
+
+
+def test_the_same_recording_under_another_name_is_named_as_a_duplicate(mcap_bags: list[Path],
+                                                                        tmp_path: Path) -> None:
+    twin = tmp_path / "renamed_copy.mcap"
+    shutil.copyfile(mcap_bags[0], twin)
+    proc = run_module("ingest", *mcap_bags, twin, "-o", tmp_path / "d.h5", "--size", "64", check=True)
+    assert "3 episode(s) added, 1 already present, 0 bad" in proc.stdout
+    line = next(ln for ln in proc.stderr.splitlines() if "same recording" in ln)
+    assert line.startswith(f"note: {twin}: the same recording as {mcap_bags[0]}") and "kept once" in line
 
 
 def test_adding_bags_keeps_existing_episodes(mcap_bags: list[Path], tmp_path: Path) -> None:

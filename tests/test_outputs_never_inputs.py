@@ -57,6 +57,8 @@ CASES = [
     ("train", "--model fm_cnn --data {data} --log {split}"),
     ("replay", "--models {models} --data {data} --details {split}"),
     ("replay", "--models {models} --data {data} --scenes 1 --until-decided --eval {details} --details {details}"),
+    ("rollout", "{models} --data {data} --out {models} --summary {split}"),
+    ("rollout", "{models} --data {data} --out {models} --summary {data}"),
     ("report", "--eval {details} --replay {details} -o {details}"),
     ("report", "--eval {details} --replay {details} -o {data}"),
     ("assess", "--models {models} --data {data} --table {split}"),

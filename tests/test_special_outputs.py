@@ -32,6 +32,8 @@ CASES = [
     ("replay", "--models {models} --data {data} --details {out}"),
     ("replay", "--models {models} --data {data} --table {out}"),
     ("report", "--eval {details} --replay {details} -o {out}"),
+    ("rollout", "{models} --data {data} --out {out}"),
+    ("rollout", "{models} --data {data} --out {models} --summary {out}"),
     ("seeds", "--eval {details} --replay {details} -o {out}"),
     ("seeds", "--eval {details} --replay {details} --metrics {out}"),
     ("serve", "{models} --log {out}"),
