@@ -5,8 +5,8 @@ The expert is the demonstrator's own law (adlpipe.recovery): from wherever the c
 demonstrated path, the offset fading, and on along it to the goal, at the demonstration's pace from the point of the
 path the rollout has reached (its phase), not from where the demonstration was at that time: a policy that lags
 behind the demonstration's timetable is led on along the path, not told to dash to catch up (measured: timed labels
-were mostly that dash, docs/science/dagger.md). The phase is tracked from the command as the rollout goes, never
-back and at most MAX_PHASE_RATE times the demonstration's pace, and recorded (/adl/expert_phase); with the scene's
+were mostly that dash, docs/science/dagger.md). The phase is tracked from the command as the rollout goes (the
+nearest point of the path up to LOOK_AHEAD_S ahead, never back), and recorded (/adl/expert_phase); with the scene's
 demonstrated path (the reference topic) it is what `train --target recovery` makes each frame's label from, so the
 label of a re-plan's frame is the expert's plan there, which also goes on a topic of its own (/adl/expert_plan).
 
@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from .episode import Streams
 
 PATH_SPACING_M = 0.001  # the reference path resampled this finely: distances to it are within half of it
-MAX_PHASE_RATE = 3.0  # the phase advances at most this many times as fast as the clock
+LOOK_AHEAD_S = 1.0  # the tracker looks this far along the path ahead of the phase at each step (100 Hz)
 
 
 @dataclass(frozen=True)
@@ -57,10 +57,11 @@ class Expert:
         return np.array([np.interp(t, self.ref_t, self.ref_p[:, d]) for d in range(3)])
 
     def track(self, t: float, now: np.ndarray) -> float:
-        """The phase (s along the demonstration) of the command `now` at clock t: the point of the path nearest it
-        among those reachable since the last call (never back, at most MAX_PHASE_RATE times the clock's pace)."""
-        reach = self.phase + MAX_PHASE_RATE * max(t - self._clock, 0.0)
-        candidates = np.linspace(self.phase, min(reach, float(self.ref_t[-1])), 32)
+        """The phase (s along the demonstration) of the command `now`: the point of the path nearest it from the
+        phase so far to LOOK_AHEAD_S ahead of it (never back; the earliest of equally near points, so a dwell or a
+        stroke that passes the same place again is not skipped). t: the clock, for the record."""
+        end = min(self.phase + LOOK_AHEAD_S, float(self.ref_t[-1]))
+        candidates = np.linspace(self.phase, end, 201)  # 5 ms apart
         path = np.stack([np.interp(candidates, self.ref_t, self.ref_p[:, d]) for d in range(3)], -1)
         self.phase = float(candidates[int(np.argmin(np.linalg.norm(path - np.asarray(now, float), axis=1)))])
         self._clock = max(self._clock, t)
