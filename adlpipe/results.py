@@ -4,6 +4,7 @@
     python -m adlpipe.results --save-seeds pipelines/seeds/metrics/seeds.json
     python -m adlpipe.results --save-study pipelines/study     # after `dvc repro` there
     python -m adlpipe.results --save-closed-loop pipelines/closed_loop     # likewise
+    python -m adlpipe.results --save-dagger pipelines/closed_loop          # its DAgger rounds
     python -m adlpipe.results                            # rewrite README's tables from results/
     python -m adlpipe.results --check                    # exit 1 when README and results/ disagree (a test runs it)
 
@@ -78,15 +79,16 @@ CLOSED_LOOP_FILES = {"metrics/replay_closed_loop_details.json": "replay_closed_l
                      "metrics/replay_latency_still_details.json": "replay_latency_still_details.json",
                      "metrics/replay_latency_moving_details.json": "replay_latency_moving_details.json",
                      # the open-loop reference: the default pipeline's replay of the same scenes in that run
-                     "../../metrics/replay_details.json": "replay_open_details.json",
-                     # DAgger and HG-DAgger: each arm's replays (the pair's and BC's) and each round's rollouts
-                     **{f"metrics/dagger/{kind}{arm}_details.json": f"dagger/{kind}{arm}_details.json"
-                        for arm, _, _ in DAGGER_ARMS
-                        for kind in ("replay_dagger_", "replay_moving_dagger_", "replay_dagger_bc_",
-                                     "replay_moving_dagger_bc_")},
-                     **{f"metrics/dagger/{r}_{m}.json": f"dagger/{r}_{m}.json"
-                        for r in ("dagger_rollout_r1", "dagger_rollout_r2", "hg_rollout_r1")
-                        for m in ("fm_cnn", "dp_cnn", "bc_cnn")}}
+                     "../../metrics/replay_details.json": "replay_open_details.json"}
+# DAgger and HG-DAgger (pipelines/closed_loop -> results/closed_loop/dagger): each arm's replays (the pair's and
+# BC's), each round's rollouts, and the expert's timing on round 1's rollouts
+DAGGER_FILES = {**{f"metrics/dagger/{kind}{arm}_details.json": f"{kind}{arm}_details.json"
+                   for arm, _, _ in DAGGER_ARMS
+                   for kind in ("replay_dagger_", "replay_moving_dagger_", "replay_dagger_bc_",
+                                "replay_moving_dagger_bc_")},
+                **{f"metrics/dagger/{r}_{m}.json": f"{r}_{m}.json"
+                   for r in ("dagger_rollout_r1", "dagger_rollout_r2", "hg_rollout_r1", "expert_timing_r1")
+                   for m in ("fm_cnn", "dp_cnn", "bc_cnn")}}
 # What pipelines/moving_person keeps (-> results/moving_person): the trio trained with the person moving, replayed
 MOVING_PERSON_FILES = {"metrics/replay_moving_details.json": "replay_moving_details.json",
                        "metrics/replay_still_details.json": "replay_still_details.json",
@@ -205,7 +207,7 @@ def dagger_tables(kept: Path, still_open: dict, moving_open: dict | None) -> dic
     """The DAgger rounds' tables, the person still and moving, from what results/closed_loop/dagger keeps."""
     if not kept.is_dir():
         return {}
-    rollouts = {p.stem: _load(p) for p in kept.glob("*_rollout_*.json")}
+    rollouts = {p.stem: _load(p) for p in kept.glob("*_rollout_r*.json")}
     out = {}
     for name, prefix, open_loop, person in (("dagger", "replay_dagger_", still_open, "still"),
                                             ("dagger-moving", "replay_moving_dagger_", moving_open, "moving")):
@@ -271,6 +273,15 @@ def save_closed_loop(pipeline: Path, results: Path) -> None:
     keep(pipeline, CLOSED_LOOP_FILES, "*.csv", results / "closed_loop")
 
 
+def save_dagger(pipeline: Path, results: Path) -> None:
+    """Keep the DAgger rounds' replays, rollout summaries and training logs (the rounds', and round 0's
+    closed_loop_*.csv) in RESULTS/closed_loop/dagger."""
+    if not any((pipeline / k).is_file() for k in DAGGER_FILES if "replay_dagger_" in k):
+        raise AdlError(f"{pipeline}: no DAgger arm has been replayed (metrics/dagger/replay_dagger_*_details.json "
+                       "missing); run its stages there")
+    keep(pipeline, DAGGER_FILES, "*.csv", results / "closed_loop" / "dagger")
+
+
 def save_moving_person(pipeline: Path, results: Path) -> None:
     """Keep pipelines/moving_person's replays and training logs in RESULTS/moving_person."""
     first = next(iter(MOVING_PERSON_FILES))
@@ -315,6 +326,8 @@ def main(argv: list[str] | None = None) -> int:
                    "trio's replays and training logs (pipelines/moving_person) in RESULTS/moving_person")
     p.add_argument("--save-closed-loop", type=Path, metavar="PIPELINE", help="first keep the closed-loop pipeline's "
                    "details, reports and training logs (pipelines/closed_loop) in RESULTS/closed_loop")
+    p.add_argument("--save-dagger", type=Path, metavar="PIPELINE", help="first keep the DAgger rounds' replays, "
+                   "rollouts and training logs (pipelines/closed_loop) in RESULTS/closed_loop/dagger")
     args = p.parse_args(argv)
     if args.save_moving_person is not None:
         save_moving_person(args.save_moving_person, args.results)
@@ -322,6 +335,8 @@ def main(argv: list[str] | None = None) -> int:
         save_study(args.save_study, args.results)
     if args.save_closed_loop is not None:
         save_closed_loop(args.save_closed_loop, args.results)
+    if args.save_dagger is not None:
+        save_dagger(args.save_dagger, args.results)
     if args.save_from is not None:
         present = [n for n in RUN_FILES if n in RUN_FILES[:2] or (args.save_from / n).exists()]
         for name in present:

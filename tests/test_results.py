@@ -87,3 +87,25 @@ def test_table2_waits_for_a_run_not_committed_and_names_a_broken_one(tmp_path: P
     (folder / "kitchen_long_details.json").write_text("{")
     with pytest.raises(AdlError, match="kitchen_long_details.json: not a benchmark details file"):
         table2_lines(tmp_path)
+
+
+def test_the_dagger_table_pairs_each_arm_with_the_one_before_and_with_open_loop() -> None:
+    from adlpipe.evaluation.dagger import dagger_lines
+
+    scenes = [f"fresh/t/{i}" for i in range(20)]
+    fm, ol = "fm_cnn/euler-1/Ta-8", "fm_cnn/euler-1"
+
+    def arm(solved: int, off: int) -> dict:
+        diag = {s: {"replans": 4, "replans_off_path": off, "plan_ratio_off_path": 0.5, "peak_force_n": 5.0 + i}
+                for i, s in enumerate(scenes)}
+        return {"per_episode": {fm: {s: i < solved for i, s in enumerate(scenes)}}, "diagnostics": {fm: diag},
+                "training": {"fm_cnn": {"converged": True}}}
+
+    open_loop = {"per_episode": {ol: {s: i < 10 for i, s in enumerate(scenes)}}}
+    rollouts = {"dagger_rollout_r1_fm_cnn": {"plans": 880}}
+    lines = dagger_lines({"r0": arm(4, 2), "r1": arm(12, 1)}, open_loop, rollouts)
+    r0, r1 = (ln for ln in lines if ln.startswith("| FM-1 |"))
+    assert "| round 0: the demonstrations | 0 | 20 [8, 42] | - | -30.0 (p = 0.03) | 50 % |" in r0  # 0 : 6
+    # round 1 solves the 4 scenes round 0 did and 8 more: +40 points, McNemar 8 : 0, p = 2 / 2^8
+    assert "| DAgger round 1 | 880 re-plans (expert) | 60 [39, 78] | +40.0 (p = 0.01) | +10.0 (p = 0.50) | 25 % |" in r1
+    assert r1.endswith("| 0.50 | 4 (14.5 N) | yes |")  # peaks 5-24 N: 4 over 20 N

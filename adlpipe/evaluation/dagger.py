@@ -15,7 +15,7 @@ ARMS = (("r0", "round 0: the demonstrations", None),
         ("r1", "DAgger round 1", "r0"),
         ("r2", "DAgger round 2", "r1"),
         ("hg_r1", "HG-DAgger round 1", "r0"),
-        ("more", "the demonstrations, as many more steps as two rounds", "r0"))
+        ("more", "the demonstrations, as many more steps as a round", "r0"))
 # replay label of the closed-loop policy (Ta 8) -> (its name, the open-loop label of the same objective, model folder)
 POLICIES = {"fm_cnn/euler-1/Ta-8": ("FM-1", "fm_cnn/euler-1", "fm_cnn"),
             "dp_cnn/ddpm-16/Ta-8": ("DP-16", "dp_cnn/ddpm-16", "dp_cnn"),
