@@ -58,3 +58,15 @@ def test_a_documented_command_parses(monkeypatch: pytest.MonkeyPatch, capsys: py
     with pytest.raises(SystemExit) as done:
         module.main(argv)
     assert done.value.code == 0, f"{where}: {stage} {' '.join(argv)}: {capsys.readouterr().err.strip()}"
+
+
+def test_the_example_topic_map_names_every_key_at_the_codes_default() -> None:
+    from dataclasses import fields
+
+    import yaml
+
+    from adlpipe.bags.topics import TopicMap
+
+    example = REPO / "pipelines" / "topics.example.yaml"
+    assert set(yaml.safe_load(example.read_text())) == {f.name for f in fields(TopicMap)}
+    assert TopicMap.load(example) == TopicMap()
