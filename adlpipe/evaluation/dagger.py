@@ -66,18 +66,18 @@ def arm_row(name: str, arm: str, label: str, det: dict, prev: dict | None, open_
     off = sum(x.get("replans_off_path", 0) for x in d)
     ratios = [x["plan_ratio_off_path"] for x in d if x.get("plan_ratio_off_path") is not None]
     force = sum(x.get("peak_force_n", 0.0) > FORCE_LIMIT_N for x in d)
-    peak = np.median([x.get("peak_force_n", 0.0) for x in d]) if d else float("nan")
+    peak = max((x.get("peak_force_n", 0.0) for x in d), default=float("nan"))
     conv = {True: "yes", False: "no"}.get(det.get("training", {}).get(model, {}).get("converged"), "-")
     return (f"| {policy} | {name} | {labelled(arm, model, rollouts)} | {rate_cell(sum(ok), len(ok))} | "
             f"{versus(prev, label)} | {versus(open_loop, open_label)} | "
             f"{100 * off / replans:.0f} % | {np.median(ratios) if ratios else float('nan'):.2f} | "
-            f"{force} ({peak:.1f} N) | {conv} |")
+            f"{force} (max {peak:.0f} N) | {conv} |")
 
 
 def dagger_lines(arms: dict[str, dict], open_loop: dict, rollouts: dict[str, dict], person: str = "still") -> list[str]:
     """The rounds' table for one world: a row per policy and arm present in `arms` (arm -> replay details)."""
     lines = ["| policy | arm | labelled for training | success % [95 %] | vs the arm before (pts, p) | "
-             "vs open loop (pts, p) | re-plans off the path | plan / demo there | over 20 N (median peak) | "
+             "vs open loop (pts, p) | re-plans off the path | plan / demo there | over 20 N (the highest peak) | "
              "converged |",
              "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
     n = 0
