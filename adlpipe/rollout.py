@@ -47,21 +47,23 @@ def main(argv: list[str] | None = None) -> int:
          implied=lambda a: [a.data.with_name("split.json")] if a.split is None else [])
     args = p.parse_args(argv)
     refuse_pipeline_outputs([args.out, args.summary], args.force)
-    if not (args.model / f"{'best' if args.checkpoint == 'best' else 'model'}.pt").is_file():
+    checkpoint = "best.pt" if args.checkpoint == "best" else "model.pt"
+    if not (args.model / checkpoint).is_file():
         raise AdlError(f"{args.model}: no {args.checkpoint} checkpoint; train the model first")
     from .evaluation.rollouts import RolloutConfig, run_rollouts, write_summary
     from .policy.checkpoint import load_checkpoint
     from .policy.models import ModelConfig
     from .sim.dagger import OperatorRule
 
-    checkpoint = "best.pt" if args.checkpoint == "best" else "model.pt"
     config = load_checkpoint(args.model / checkpoint).get("config", {})
-    if not ModelConfig.from_dict(config).closed_loop:
+    model = ModelConfig.from_dict(config)
+    if not model.closed_loop:
         raise AdlError(f"{args.model}: not a closed-loop model (train --closed-loop); a rollout re-plans from frames")
     steps = args.steps or (16 if str(config.get("model", "")).startswith("dp") else 1)
     cfg = RolloutConfig(args.model, args.data, args.split or args.data.with_name("split.json"), args.out, checkpoint,
-                        args.execute, steps, args.seed, OperatorRule(*args.operator) if args.operator else None,
-                        args.time_limit, args.workers, args.limit)
+                        args.execute, model.rate_hz, steps, args.seed,
+                        OperatorRule(*args.operator) if args.operator else None, args.time_limit, args.workers,
+                        args.limit)
     s = run_rollouts(cfg)
     if args.summary:
         write_summary(args.summary, s)

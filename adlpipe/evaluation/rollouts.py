@@ -31,6 +31,7 @@ class RolloutConfig:
     out: Path  # the bags' folder
     checkpoint: str = "best.pt"
     execute: int = 8  # Ta
+    rate_hz: float = 10.0  # the model's waypoint rate (Ta / rate: the seconds a re-plan covers)
     steps: int = 1  # sampler steps (FM-1, DP-16: the decision's)
     seed: int = 0  # the samplers' noise (a round's own)
     operator: object | None = None  # adlpipe.sim.dagger.OperatorRule: HG-DAgger; None: DAgger (the expert labels)
@@ -91,14 +92,8 @@ def summary(cfg: RolloutConfig, rows: list[dict]) -> dict:
             "seed": cfg.seed, "operator": None if cfg.operator is None else vars(cfg.operator),
             "rollouts": len(rows), "success": float(np.mean([r["success"] for r in rows])),
             "plans": plans, "operator_plans": taken,
-            "operator_s": round(taken * cfg.execute / rate_of(cfg.model, cfg.checkpoint), 1),
+            "operator_s": round(taken * cfg.execute / cfg.rate_hz, 1),
             "labelled_plans": taken if cfg.operator is not None else plans, "per_rollout": rows}
-
-
-def rate_of(model: Path, checkpoint: str) -> float:
-    from ..policy.checkpoint import load_checkpoint
-
-    return float(load_checkpoint(model / checkpoint)["config"]["rate_hz"])
 
 
 def write_summary(path: Path, s: dict) -> None:

@@ -50,27 +50,26 @@ class Expert:
         self.ref_t, self.ref_p = np.asarray(ref_t, float), np.asarray(ref_p, float)[:, :3]
         self.horizon, self.rate_hz = horizon, rate_hz
         self._tree = cKDTree(dense_path(self.ref_p))
-        self.phase, self._clock = 0.0, 0.0
+        self.phase = 0.0
 
-    def reference(self, t: float) -> np.ndarray:
-        """The demonstrated path at time t of the demonstration (held at its end)."""
-        return np.array([np.interp(t, self.ref_t, self.ref_p[:, d]) for d in range(3)])
+    def reference(self, t: float | np.ndarray) -> np.ndarray:
+        """The demonstrated path at time(s) t of the demonstration (held at its end): (3,) or (len(t), 3)."""
+        return np.stack([np.interp(t, self.ref_t, self.ref_p[:, d]) for d in range(3)], -1)
 
-    def track(self, t: float, now: np.ndarray) -> float:
+    def track(self, now: np.ndarray) -> float:
         """The phase (s along the demonstration) of the command `now`: the point of the path nearest it from the
         phase so far to LOOK_AHEAD_S ahead of it (never back; the earliest of equally near points, so a dwell or a
-        stroke that passes the same place again is not skipped). t: the clock, for the record."""
+        stroke that passes the same place again is not skipped)."""
         end = min(self.phase + LOOK_AHEAD_S, float(self.ref_t[-1]))
         candidates = np.linspace(self.phase, end, 201)  # 5 ms apart
-        path = np.stack([np.interp(candidates, self.ref_t, self.ref_p[:, d]) for d in range(3)], -1)
-        self.phase = float(candidates[int(np.argmin(np.linalg.norm(path - np.asarray(now, float), axis=1)))])
-        self._clock = max(self._clock, t)
+        distance = np.linalg.norm(self.reference(candidates) - np.asarray(now, float), axis=1)
+        self.phase = float(candidates[int(np.argmin(distance))])
         return self.phase
 
-    def plan(self, t: float, now: np.ndarray) -> np.ndarray:
-        """(horizon, 3): the expert's waypoints 1/rate .. horizon/rate s after clock t from the command `now`:
-        back onto the path and on from the phase the command has reached."""
-        phase = self.track(t, now)
+    def plan(self, now: np.ndarray) -> np.ndarray:
+        """(horizon, 3): the expert's waypoints 1/rate .. horizon/rate s from the command `now`: back onto the path
+        and on from the phase the command has reached."""
+        phase = self.track(now)
         future = phase + np.arange(1, self.horizon + 1)[None] / self.rate_hz
         return recovering_plan(np.array([phase]), np.asarray(now, float)[None], self.ref_t, self.ref_p, future)[0]
 
@@ -122,7 +121,7 @@ class LabelledRollout:
         self.operator_plans = 0
 
     def __call__(self, frames: list, t: float, anchor: np.ndarray) -> np.ndarray:
-        expert = self.expert.plan(t, anchor)
+        expert = self.expert.plan(anchor)
         self.st.expert_plans.append((t, expert.copy(), np.arange(1, len(expert) + 1) / self.expert.rate_hz))
         executed = self.last_plan[:self.execute] if self.last_plan is not None else np.zeros((0, 3))
         drives = self.operator is not None and self.operator.decide(executed, 1 / self.expert.rate_hz, anchor)

@@ -520,7 +520,7 @@ class _StreamRecorder:
             if self.reference is not None:
                 st.reference.append((t, self.reference(t)))
             if self.expert is not None:  # where on the demonstrated path the command is (never back)
-                st.expert_phase.append((t, self.expert.track(t, c.target)))  # type: ignore[attr-defined]
+                st.expert_phase.append((t, self.expert.track(c.target)))  # type: ignore[attr-defined]
             self.next["joint"] += self.joint_dt
         if t + 1e-9 >= self.next["tf"]:
             q = np.zeros(4)
