@@ -128,10 +128,15 @@ class TfBuffer:
         return self.times[child][0] if self.times.get(child) else None
 
 
+def path_at(t: np.ndarray | float, times: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """A sampled path (times (M,), values (M, D)) at the time(s) t, linearly interpolated per dimension and held
+    at its ends: shape t.shape + (D,)."""
+    return np.stack([np.interp(t, times, values[:, k]) for k in range(values.shape[1])], axis=-1)
+
+
 def resample(times: np.ndarray, values: np.ndarray, t_start: float, t_end: float, n: int) -> np.ndarray:
     """n samples evenly spaced in time over [t_start, t_end], linearly interpolated per dimension."""
-    tq = np.linspace(t_start, t_end, n)
-    return np.stack([np.interp(tq, times, values[:, k]) for k in range(values.shape[1])], axis=1)
+    return path_at(np.linspace(t_start, t_end, n), times, values)
 
 
 def in_camera(points: np.ndarray, T_base_camera: np.ndarray) -> np.ndarray:

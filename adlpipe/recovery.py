@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .geometry import path_at
+
 RETURN_TAU_S = 0.3  # the time constant of the return: 95 % of an offset gone in 0.9 s
 RETURN_S = 3 * RETURN_TAU_S  # what a disturbance leaves free after it for the return
 
@@ -26,7 +28,7 @@ def recovering_plan(t_now: np.ndarray, now: np.ndarray, ref_t: np.ndarray, ref_p
     """(F, H, 3): the demonstrator's plan from the command `now` (F, 3) at times t_now (F,), at the absolute times
     `future` (F, H): the reference path there, plus the command's offset from the reference at t_now, fading."""
     t_now = np.asarray(t_now, float)
-    ref_future = np.stack([np.interp(future, ref_t, ref_p[:, d]) for d in range(3)], -1)
-    ref_now = np.stack([np.interp(t_now, ref_t, ref_p[:, d]) for d in range(3)], -1)
+    ref_future = path_at(future, ref_t, ref_p[:, :3])
+    ref_now = path_at(t_now, ref_t, ref_p[:, :3])
     left = offset_left(future - t_now[:, None])
     return ref_future + (np.asarray(now, float) - ref_now)[:, None] * left[..., None]

@@ -115,6 +115,22 @@ def _files(path: Path) -> dict[str, str]:
     return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in root.rglob("*.h5")}
 
 
+def test_path_at_interpolates_every_axis_and_holds_the_ends() -> None:
+    """The one helper behind every "path at these times" (loader, recovery, replay, doctor): scipy's linear
+    interpolation per axis inside the path, its first and last point outside, any shape of times."""
+    from scipy.interpolate import interp1d
+
+    from adlpipe.geometry import path_at
+
+    rng = np.random.default_rng(3)
+    times, values = np.sort(rng.uniform(0, 5, 40)), rng.normal(size=(40, 3))
+    t = rng.uniform(-1, 6, (7, 16))
+    expected = interp1d(times, values, axis=0, bounds_error=False, fill_value=(values[0], values[-1]))(t)
+    assert path_at(t, times, values).shape == (7, 16, 3)
+    np.testing.assert_allclose(path_at(t, times, values), expected, atol=1e-12)
+    np.testing.assert_allclose(path_at(-1.0, times, values), values[0])
+
+
 def test_appending_writes_only_the_new_bags(mcap_bags: list[Path], tmp_path: Path) -> None:
     out = tmp_path / "adl.h5"
     run_module("ingest", mcap_bags[0], "-o", out, "--size", "64", check=True)

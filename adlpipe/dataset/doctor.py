@@ -15,6 +15,7 @@ import h5py
 import numpy as np
 from scipy.stats import median_abs_deviation
 
+from ..geometry import path_at
 from . import schema
 from .doctor_checks import (
     by_task,
@@ -170,7 +171,7 @@ def _motion(ee_t: np.ndarray, ee_pos: np.ndarray, duration: float, limits: Limit
     out.update(path_m=float(step.sum()), peak_speed_mps=float(speed[k]), peak_speed_at_s=float(t[k + 1]),
                max_tf_gap_s=float(dt.max()))
     grid = np.arange(0.0, duration + 1e-9, 1 / RESAMPLE_HZ)
-    q = np.stack([np.interp(grid, t, p[:, d]) for d in range(3)], 1)
+    q = path_at(grid, t, p[:, :3])
     v = np.linalg.norm(np.diff(q, axis=0), axis=1) * RESAMPLE_HZ
     fast = np.flatnonzero(v > limits.idle_speed_mps)
     if len(fast):

@@ -17,6 +17,8 @@ import h5py
 import numpy as np
 from scipy.spatial.distance import cdist
 
+from ..geometry import path_at
+
 CLOCK_MAX_LAG_S = 0.5  # lags searched between image motion and end-effector speed
 SAMPLES = 8  # frames read for colour and brightness
 PATH_POINTS = 32  # the end-effector path resampled for cross-episode comparison
@@ -91,7 +93,7 @@ def frame_figures(g: h5py.Group, ee_t: np.ndarray, ee_pos: np.ndarray) -> dict:
 def path_signature(ee_t: np.ndarray, ee_pos: np.ndarray, duration: float) -> np.ndarray:
     """The end-effector path resampled at PATH_POINTS instants evenly over the episode (PATH_POINTS, 3)."""
     grid = np.linspace(0.0, duration, PATH_POINTS)
-    return np.stack([np.interp(grid, ee_t, ee_pos[:, d]) for d in range(3)], 1)
+    return path_at(grid, ee_t, ee_pos[:, :3])
 
 
 def by_task(figs: dict[str, dict], names: list[str] | None = None) -> dict[str, list[str]]:

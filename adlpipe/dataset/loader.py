@@ -19,6 +19,7 @@ from torch.utils.data import Dataset
 
 from ..camera import PINHOLE, Lens, project, read_lens
 from ..errors import AdlError
+from ..geometry import path_at
 from ..recovery import recovering_plan
 from . import schema
 from .frames import metres_from_mm
@@ -90,7 +91,7 @@ def relative_waypoints(t_now: np.ndarray, now: np.ndarray, series_t: np.ndarray,
         at = np.interp(t_now, phase[0], phase[1]) if phase else np.asarray(t_now, float)
         xyz = recovering_plan(at, now, ref_t, ref_p, at[:, None] + ahead)
     else:
-        xyz = np.stack([np.interp(future, series_t, series_p[:, d]) for d in range(3)], -1)  # (F, Tp, 3)
+        xyz = path_at(future, series_t, series_p[:, :3])  # (F, Tp, 3)
     now = np.asarray(now, float)
     wh = (size, size) if size else None  # the stored images' size: the lens holds inside them
     uv = (project(xyz.reshape(-1, 3), K, T, lens, wh).reshape(*xyz.shape[:2], 2)
@@ -105,7 +106,7 @@ def anchor_series(g: h5py.Group, target: str, where: str) -> tuple[np.ndarray, n
     if target in ("command", "recovery"):
         ct, cmd = command_series(g, where)
         t = g["frames/t"][()]
-        return ct, cmd, np.stack([np.interp(t, ct, cmd[:, d]) for d in range(3)], 1)
+        return ct, cmd, path_at(t, ct, cmd)
     return g["series/ee_t"][()], g["series/ee_pos"][()], g["frames/ee_pos"][()].astype(float)
 
 

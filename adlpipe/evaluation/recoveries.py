@@ -12,6 +12,7 @@ import numpy as np
 
 from ..dataset import schema
 from ..dataset.loader import command_series, reference_series
+from ..geometry import path_at
 from ..sim.tasks import FORCE_LIMIT_N
 from ..stats import paired_success, rate_cell
 
@@ -81,7 +82,7 @@ def recording_disturbances(index: str | Path, names: list[str]) -> dict:
             g = f[schema.EPISODES][name]
             t, cmd = command_series(g, f"{index}: {name}")
             ref_t, ref = reference_series(g, f"{index}: {name}")
-            gap = np.linalg.norm(cmd - np.stack([np.interp(t, ref_t, ref[:, d]) for d in range(3)], 1), axis=1)
+            gap = np.linalg.norm(cmd - path_at(t, ref_t, ref[:, :3]), axis=1)
             largest.append(float(gap.max()))
             off, samples = off + int((gap > OFF_M).sum()), samples + len(gap)
             disturbed += bool(gap.max() > OFF_M)

@@ -18,6 +18,7 @@ from ..dataset.loader import (
     relative_waypoints,
 )
 from ..errors import AdlError
+from ..geometry import path_at
 from ..runtime import Placement
 from ..stats import median_cell
 
@@ -82,7 +83,7 @@ def closed_loop_one(job: tuple) -> tuple[str, str, str, bool, dict]:
     def plan(frames: list, elapsed: float, anchor: np.ndarray) -> np.ndarray:
         """The next Tp waypoints in the base frame, from the anchor."""
         if oracle is not None:
-            now = np.array([[np.interp(elapsed, series_t, series_p[:, d]) for d in range(3)]])
+            now = path_at(elapsed, series_t, series_p[:, :3])[None]
             rel = relative_waypoints(np.array([elapsed]), now, series_t, series_p, cfg.horizon, cfg.rate_hz,
                                      sc.K, sc.T_base_camera)
             offsets = planner.norm.unnormalize(planner.norm.normalize(torch.from_numpy(rel)))[0, :, 2:].numpy()
@@ -169,7 +170,7 @@ def plan_ratios(commands: np.ndarray, start: np.ndarray, execute: int, rate_hz: 
         dist = np.linalg.norm(demo_p[j:ahead + 1] - anchor, axis=1)
         j += int(np.argmin(dist))
         ts = np.linspace(demo_t[j], demo_t[j] + span, execute + 1)
-        demo = path_length(np.stack([np.interp(ts, demo_t, demo_p[:, d]) for d in range(3)], 1))
+        demo = path_length(path_at(ts, demo_t, demo_p[:, :3]))
         if demo > 1e-3:
             ratios.append(path_length(np.vstack([anchor, chunk])) / demo)
             off.append(float(dist.min()))

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..geometry import path_at
 from ..recovery import recovering_plan
 
 if TYPE_CHECKING:
@@ -54,7 +55,7 @@ class Expert:
 
     def reference(self, t: float | np.ndarray) -> np.ndarray:
         """The demonstrated path at time(s) t of the demonstration (held at its end): (3,) or (len(t), 3)."""
-        return np.stack([np.interp(t, self.ref_t, self.ref_p[:, d]) for d in range(3)], -1)
+        return path_at(t, self.ref_t, self.ref_p)
 
     def track(self, now: np.ndarray) -> float:
         """The phase (s along the demonstration) of the command `now`: the point of the path nearest it from the

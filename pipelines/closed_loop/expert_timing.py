@@ -20,6 +20,7 @@ import h5py
 import numpy as np
 
 from adlpipe.dataset.loader import command_series, reference_series
+from adlpipe.geometry import path_at
 from adlpipe.sim.dagger import Expert
 
 
@@ -32,16 +33,16 @@ def timing(data: Path, demos: set[str]) -> dict:
             ct, cmd = command_series(g, name)
             rt, rp = reference_series(g, name)
             t = g["frames/t"][()]
-            c = np.stack([np.interp(t, ct, cmd[:, d]) for d in range(3)], 1)
-            r = np.stack([np.interp(t, rt, rp[:, d]) for d in range(3)], 1)
+            c = path_at(t, ct, cmd)
+            r = path_at(t, rt, rp)
             timed.append(np.linalg.norm(c - r, axis=1))
             geometric.append(Expert(rt, rp, 16, 10.0).off_path(c))
             grid = np.linspace(0.0, rt[-1], 2000)
-            path = np.stack([np.interp(grid, rt, rp[:, d]) for d in range(3)], 1)
+            path = path_at(grid, rt, rp)
             lag.append(t - grid[np.argmin(np.linalg.norm(c[:, None] - path[None], axis=2), axis=1)])
             if "expert_phase_stream" in g["frames"]:  # the phase expert's offset: from the path at its phase
                 at = np.interp(t, g["frames/expert_phase_stream_t"][()], g["frames/expert_phase_stream"][:, 0])
-                r = np.stack([np.interp(at, rt, rp[:, d]) for d in range(3)], 1)
+                r = path_at(at, rt, rp)
                 phased.append(np.linalg.norm(c - r, axis=1))
     a, b, lg = (np.concatenate(x) for x in (timed, geometric, lag))
     cm = lambda x, q: round(100 * float(np.percentile(x, q)), 1)  # noqa: E731
