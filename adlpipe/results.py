@@ -26,7 +26,7 @@ from .cli import Parser
 from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import claims
 from .evaluation.dagger import ARMS as DAGGER_ARMS
-from .evaluation.dagger import dagger_lines, merged
+from .evaluation.dagger import dagger_lines, fit_lines, merged
 from .evaluation.latency import latency_lines, serve_lines
 from .evaluation.outcomes import breakdown_lines
 from .evaluation.person import motion_training_lines, moving_person_lines
@@ -87,7 +87,7 @@ DAGGER_FILES = {**{f"metrics/dagger/{kind}{arm}_details.json": f"{kind}{arm}_det
                    for kind in ("replay_dagger_", "replay_moving_dagger_", "replay_dagger_bc_",
                                 "replay_moving_dagger_bc_")},
                 **{f"metrics/dagger/{r}_{m}.json": f"{r}_{m}.json"
-                   for r in ("dagger_rollout_r1", "dagger_rollout_r2", "hg_rollout_r1", "expert_timing_r1")
+                   for r in ("dagger_rollout_r1", "dagger_rollout_r2", "hg_rollout_r1", "expert_timing_r1", "fit")
                    for m in ("fm_cnn", "dp_cnn", "bc_cnn")}}
 # What pipelines/moving_person keeps (-> results/moving_person): the trio trained with the person moving, replayed
 MOVING_PERSON_FILES = {"metrics/replay_moving_details.json": "replay_moving_details.json",
@@ -219,6 +219,9 @@ def dagger_tables(kept: Path, still_open: dict, moving_open: dict | None) -> dic
                 arms[arm] = merged(*found)
         if arms and open_loop is not None:
             out[name] = dagger_lines(arms, open_loop, rollouts, person)
+    fits = {p.stem.removeprefix("fit_"): _load(p) for p in kept.glob("fit_*.json")}
+    if fits and (lines := fit_lines(fits)):
+        out["dagger-fit"] = lines
     return out
 
 

@@ -109,3 +109,22 @@ def test_the_dagger_table_pairs_each_arm_with_the_one_before_and_with_open_loop(
     # round 1 solves the 4 scenes round 0 did and 8 more: +40 points, McNemar 8 : 0, p = 2 / 2^8
     assert "| DAgger round 1 | 880 re-plans (expert) | 60 [39, 78] | +40.0 (p = 0.01) | +10.0 (p = 0.50) | 25 % |" in r1
     assert r1.endswith("| 0.50 | 4 (max 24 N) | yes |")  # peaks 5-24 N: 4 over 20 N
+
+
+def test_the_dagger_fit_table_reads_each_set_on_and_off_the_path() -> None:
+    from adlpipe.evaluation.dagger import fit_lines
+
+    def fit(demo: float, on: float, off: float) -> dict:
+        return {"demo_test": {"error_cm": demo},
+                "rollouts_r1": {"error_on_path_cm": on, "error_off_path_cm": off},
+                "rollouts_r2": {"error_on_path_cm": on + 1, "error_off_path_cm": off + 1,
+                                "plan_over_label_length": {"on": 1.0, "off": 0.645}}}
+
+    fits = {"dp_cnn": {"per_episode": 12, "sets": {"demo_test": 40, "rollouts_r1": 160},
+                       "round 0": fit(2.55, 5.04, 11.04), "DAgger round 1": fit(3.67, 3.93, 5.06)}}
+    lines = fit_lines(fits)
+    rows = [ln for ln in lines if ln.startswith("| DP-16 |")]
+    assert rows[0] == "| DP-16 | round 0 | demonstrations | 2.5 | 5.0 / 11.0 | 6.0 / 12.0 | 0.65 |"
+    assert rows[1].startswith("| DP-16 | DAgger round 1 | + round 1's rollouts | 3.7 | 3.9 / 5.1 |")
+    assert "12 evenly spaced frames of every episode (40 test demonstrations" in lines[-1]
+    assert fit_lines({"dp_cnn": {"per_episode": 12, "sets": {}}}) == []

@@ -99,3 +99,41 @@ def dagger_lines(arms: dict[str, dict], open_loop: dict, rollouts: dict[str, dic
               "Converged: the 2 % rule on the arm's own training (validation over demonstrations and rollouts "
               "alike)."]
     return lines
+
+
+FIT_ARMS = ("round 0", "DAgger round 1", "DAgger round 2", "control")  # pipelines/closed_loop/dagger_fit.py
+FIT_TRAINED_ON = {"round 0": "demonstrations", "DAgger round 1": "+ round 1's rollouts",
+                  "DAgger round 2": "+ rounds 1 and 2's rollouts", "control": "demonstrations"}
+
+
+def fit_lines(fits: dict[str, dict]) -> list[str]:
+    """How each arm's policy plans at the rollouts' states against the expert's labels (dagger_fit.py), one row
+    per objective and arm: the error on the demonstrations' test windows, on round 1's rollouts (what round 1
+    trained on) and on round 2's (states the round-1 policy reached, which round 1 never trained on), on and off
+    the path, and the plans' length against the labels' off the path."""
+    lines = ["| policy | arm | trained on | demo test (cm) | round 1's rollouts: on / off the path (cm) | "
+             "round 2's rollouts: on / off the path (cm) | plan / label length off the path (round 2's) |",
+             "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
+    cm = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
+    name = {"fm_cnn": "FM-1", "dp_cnn": "DP-16", "bc_cnn": "BC"}
+    for model in ("fm_cnn", "dp_cnn", "bc_cnn"):
+        fit = fits.get(model, {})
+        for arm in FIT_ARMS:
+            if arm not in fit:
+                continue
+            sets = fit[arm]
+            demo, r1, r2 = (sets.get(k, {}) for k in ("demo_test", "rollouts_r1", "rollouts_r2"))
+            ratio = r2.get("plan_over_label_length", {}).get("off")
+            lines.append(f"| {name[model]} | {arm} | {FIT_TRAINED_ON[arm]} | {cm(demo.get('error_cm'))} | "
+                         f"{cm(r1.get('error_on_path_cm'))} / {cm(r1.get('error_off_path_cm'))} | "
+                         f"{cm(r2.get('error_on_path_cm'))} / {cm(r2.get('error_off_path_cm'))} | "
+                         f"{'-' if ratio is None else f'{ratio:.2f}'} |")
+    if len(lines) == 2:
+        return []
+    first = next(iter(fits.values()))
+    return lines + ["", f"Each policy's plan (its default sampler, fixed noise) against the expert's label at the same "
+                    f"window, in the training windows' own format: the mean distance over the 16 waypoints, at "
+                    f"{first['per_episode']} evenly spaced frames of every episode ({first['sets'].get('demo_test')} "
+                    f"test demonstrations, {first['sets'].get('rollouts_r1')} rollouts per round, on the training "
+                    "split's scenes); off the path: the anchor more than 2 cm from the demonstrated path. "
+                    "pipelines/closed_loop/dagger_fit.py."]
