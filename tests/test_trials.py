@@ -218,3 +218,20 @@ def test_a_numeric_outcome_message_is_refused_in_one_line(tmp_path: Path, msgtyp
     bag = w.close()
     err = one_line_error(run_module("trials", bag))
     assert "/adl/outcome: a " in err and "the outcome is a std_msgs/String (JSON, or true/false)" in err
+
+
+def test_the_guide_shows_what_trials_says_on_its_sample_csv(tmp_path: Path) -> None:
+    """docs/guide/decision.md quotes `adlpipe trials examples/trials.csv`: the quoted lines are the command's own."""
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "outcome.json"
+    proc = run_module("trials", root / "examples" / "trials.csv", "--latency", "fm_cnn=3.0", "dp_cnn=31.3",
+                      "-o", out, check=True)
+    guide = (root / "docs" / "guide" / "decision.md").read_text()
+    block = guide[guide.index("$ adlpipe trials examples/trials.csv"):]
+    block = block[:block.index("```")]
+    said = " ".join(proc.stdout.split())
+    quoted = [ln.strip() for ln in block.splitlines()[1:] if ln.strip() and ln.strip() != "..."]
+    assert len(quoted) >= 8
+    for line in quoted:
+        assert line in said or line in proc.stdout, line
+    assert json.loads(out.read_text())["needs"] == 83
