@@ -72,7 +72,7 @@ def project(points: np.ndarray, K: np.ndarray, T_base_camera: np.ndarray, lens: 
     front = pc[:, 2] > 0
     if not front.any():
         return uv
-    out = _distort(pc[front], K, lens)
+    out = distort(pc[front], K, lens)
     if size is None:
         uv[front] = out
         return uv
@@ -80,7 +80,7 @@ def project(points: np.ndarray, K: np.ndarray, T_base_camera: np.ndarray, lens: 
     # has folded back and the distorted pixel is not where the point appears
     wider = pc[front] * np.array([1.01, 1.01, 1.0])
     centre = np.asarray(K, float)[:2, 2]
-    monotonic = np.linalg.norm(_distort(wider, K, lens) - centre, axis=1) > np.linalg.norm(out - centre, axis=1)
+    monotonic = np.linalg.norm(distort(wider, K, lens) - centre, axis=1) > np.linalg.norm(out - centre, axis=1)
     inside = (_in_image(out, size) | _in_image(uv[front], size)) & (
         monotonic | (np.linalg.norm(pc[front][:, :2], axis=1) < 1e-9))
     idx = np.flatnonzero(front)[inside]
@@ -92,7 +92,7 @@ def _in_image(uv: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return (uv[:, 0] >= -0.5) & (uv[:, 0] <= size[0] - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= size[1] - 0.5)
 
 
-def _distort(pc: np.ndarray, K: np.ndarray, lens: Lens) -> np.ndarray:
+def distort(pc: np.ndarray, K: np.ndarray, lens: Lens) -> np.ndarray:
     """OpenCV's projection of camera-frame points through the lens."""
     zero = np.zeros(3)
     if lens.model == "equidistant":

@@ -338,9 +338,30 @@ DEFECTS_E2: dict[str, tuple[Edit, str]] = {  # the second set: defect -> (edit, 
     "time-reversed copy": (time_reversed, "time-reversed"),
     "near-duplicate 0.2 mm": (saved_again_with_noise, "near duplicate"),
 }
+def frames_swapped(messages: list[Message]) -> list[Message]:
+    """Two consecutive colour frames stored in each other's place (a driver's two threads racing), halfway through
+    the recording, where the arm moves: their pixels swapped, the stamps kept."""
+    images = [m[3] for m in messages if m[0] == IMAGE]
+    k = len(images) // 2
+    images[k].data, images[k + 1].data = images[k + 1].data, images[k].data
+    return messages
+
+
+def nonsense_distortion(messages: list[Message]) -> list[Message]:
+    """camera_info's distortion set to plumb_bob with k1 = 3.0 (a calibration file of another camera, or a typo)."""
+    for msg in _of(messages, (INFO,)):
+        msg.distortion_model = "plumb_bob"
+        msg.d = np.array([3.0, 0.0, 0.0, 0.0, 0.0])
+    return messages
+
+
+DEFECTS_E3: dict[str, tuple[Edit, str]] = {  # the kinds no issue had named, now checked: defect -> (edit, flag)
+    "two frames swapped": (frames_swapped, "frame order"),
+    "distortion k1 = 3": (nonsense_distortion, "camera lens"),
+}
 COPIES = ("near-duplicate episode", "time-reversed copy", "near-duplicate 0.2 mm")  # planted from another bag
 
 
 def plant(src: Path, dst: Path, defect: str) -> None:
-    edit = (DEFECTS | DEFECTS_E2)[defect][0]
+    edit = (DEFECTS | DEFECTS_E2 | DEFECTS_E3)[defect][0]
     write(dst, edit(list(read(src))))

@@ -1,6 +1,6 @@
 """The doctor's cross-modal and cross-episode checks (issue E2) on recorded bags with defects planted by the real
 writer (bench/plant_defects.py): each planted defect carries the flag that names it, the clean episodes none, with
-3 episodes per task."""
+4 episodes per task."""
 
 from __future__ import annotations
 
@@ -26,13 +26,15 @@ PLANTED = {  # bag -> (defect, the flag that must name it)
     "wipe_the_nose_0001.mcap": ("camera clock 200 ms behind", "camera clock"),
     "brush_the_teeth_0000.mcap": ("wrong task label", "task label"),
     "brush_the_teeth_0001.mcap": ("dark images", "dark images"),
+    "pass_the_water_0002.mcap": ("two frames swapped", "frame order"),
+    "cover_the_food_0002.mcap": ("distortion k1 = 3", "camera lens"),
 }
 
 
 @pytest.fixture(scope="module")
 def doctored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
     root = tmp_path_factory.mktemp("doctor_checks")
-    run_module("record", "--episodes", "3", "--tasks", *TASKS, "--size", "48", "--camera-hz", "10", "--out",
+    run_module("record", "--episodes", "4", "--tasks", *TASKS, "--size", "48", "--camera-hz", "10", "--out",
                root / "clean", "--seed", "3", check=True)
     (root / "bags").mkdir()
     for bag in sorted((root / "clean").glob("*.mcap")):
@@ -50,11 +52,11 @@ def doctored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
 
 
 def test_each_planted_defect_is_named_and_no_clean_episode_is_flagged(doctored: dict[str, list[str]]) -> None:
-    assert len(doctored) == 12
+    assert len(doctored) == 16
     for bag, (defect, flag) in PLANTED.items():
         assert flag in doctored[bag], (defect, doctored[bag])
     clean = {bag: flags for bag, flags in doctored.items() if bag not in PLANTED}
-    assert len(clean) == 4 and not any(clean.values()), clean
+    assert len(clean) == 6 and not any(clean.values()), clean
 
 
 @pytest.mark.parametrize("frames", [1, 2])

@@ -25,6 +25,7 @@ from .doctor_checks import (
     frame_figures,
     image_figures,
     joint_units,
+    lens_figures,
     path_signature,
 )
 from .doctor_signals import action_figures, chatter, joint_figures, near_duplicates, non_finite_notes, signature
@@ -69,6 +70,10 @@ class Limits:
     #                              rest (3x its median end speed): cut off mid-motion (200 clean: at most 0.054)
     clock_lag_s: float = 0.1  # image motion this far behind (or ahead of) the end effector's speed ...
     clock_min_r: float = 0.5  # ... with at least this correlation: the camera's clock is off
+    lens_shift: float = 0.5  # the lens model moving a point of the image by this share of its distance from the
+    #                          principal point: distortion coefficients of no real polynomial lens
+    frame_swap: float = 0.9  # the image change in the stored order over that with two frames swapped back below
+    #                          this: two frames stored in the wrong order
     # doctor_checks: against the dataset's medians (3 episodes per task are enough)
     colour_off: float = 0.05  # mean colour this far (sum over R G B, 0-1) from the dataset's ...
     swap_gain: float = 0.5  # ... and red and blue swapped this much nearer to it: BGR stored as RGB
@@ -102,6 +107,7 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
     fig["non_finite"] = non_finite_notes(g)
     fig["depth_holes"] = _depth_holes(fr)
     fig.update(camera_figures(g))
+    fig.update(lens_figures(g))
     fig.update(image_figures(fr))
     fig.update(joint_units(g))
     fig["end_speed_mps"] = end_speed(ee_t, ee_pos, duration)
@@ -255,6 +261,14 @@ def unit_flags(fig: dict, limits: Limits) -> list[str]:
     if fig["joint_abs_max"] is not None and fig["joint_abs_max"] > limits.joint_max:
         out.append(f"joint units: a joint reads {fig['joint_abs_max']:.1f} (limit {limits.joint_max} rad): "
                    "degrees?")
+    if fig["lens_shift"] is not None and (fig["lens_shift"] > limits.lens_shift or fig["lens_folds"]):
+        out.append(f"camera lens: the distortion model moves points of the image by up to "
+                   f"{fig['lens_shift']:.0%} of their distance from the principal point (limit "
+                   f"{limits.lens_shift:.0%}){' and folds back inside it' if fig['lens_folds'] else ''}: "
+                   "camera_info distortion coefficients of no real lens?")
+    if fig["order_ratio"] is not None and fig["order_ratio"] < limits.frame_swap:
+        out.append(f"frame order: the frames at {fig['order_at_s']:.2f} s change the image {fig['order_ratio']:.2f}x "
+                   f"as much swapped back as stored (limit {limits.frame_swap}): two frames stored out of order?")
     lag, r = fig["clock_lag_s"], fig["clock_r"]
     if lag is not None and abs(lag) > limits.clock_lag_s and r >= limits.clock_min_r:
         out.append(f"camera clock: image motion follows the end effector's speed {1000 * lag:+.0f} ms later "

@@ -7,21 +7,27 @@ cross-correlated with end-effector speed). Across episodes, against the dataset'
 are enough): the end effector still moving at the last frame where the others end at rest (cut off), colour
 channels in the other order (BGR), images much darker, a camera at a fraction of the others'
 rate, a gripper that never moves in a task whose other episodes grasp, a path nearer another task's episodes than
-its own (a wrong label), and a time-reversed copy of another episode. Not caught: a camera moved after
-calibration (stale extrinsics; see README). Each threshold is a field of doctor.Limits.
+its own (a wrong label), and a time-reversed copy of another episode. The frames' order against their motion
+(two frames swapped) and the lens model against the image (distortion no real lens has). Not caught: a camera
+moved after calibration (stale extrinsics; docs/guide/curation.md). Each threshold is a field of doctor.Limits.
 """
 
 from __future__ import annotations
 
+import cv2
 import h5py
 import numpy as np
 from scipy.spatial.distance import cdist
 
+from ..camera import distort, read_lens
 from ..geometry import path_at
 
 CLOCK_MAX_LAG_S = 0.5  # lags searched between image motion and end-effector speed
 SAMPLES = 8  # frames read for colour and brightness
 PATH_POINTS = 32  # the end-effector path resampled for cross-episode comparison
+LENS_GRID = 9  # points per side of the image grid the lens check moves through the lens
+ORDER_MIN_MOTION = 1.0  # grey levels (0-255, mean over 32 x 32) of change over three steps below which the frame
+#                         order is not judged (a still scene orders any way)
 
 
 def camera_figures(g: h5py.Group) -> dict:
@@ -58,18 +64,61 @@ def end_speed(ee_t: np.ndarray, ee_pos: np.ndarray, duration: float, window_s: f
     return float(np.linalg.norm(p[-1] - p[0]) / max(t[-1] - t[0], 1e-6))
 
 
+def lens_figures(g: h5py.Group) -> dict:
+    """How far the stored lens model moves points of the image from where the pinhole puts them, as a share of
+    their distance from the principal point (the largest over a grid of the image), and whether it folds back
+    inside the image (a ray further out landing nearer the middle). A real polynomial lens moves points a few
+    tens of percent at most; nonsense coefficients (k1 = 3) move them several times over. Fisheye (equidistant)
+    lenses compress the image by design and are left alone."""
+    lens, K, size = read_lens(g), g["K"][()], int(g["rgb"].shape[1])
+    out: dict = {"lens_shift": None, "lens_folds": None}
+    if not lens.distorts or lens.model == "equidistant":
+        return out
+    u, v = np.meshgrid(np.linspace(0, size - 1, LENS_GRID), np.linspace(0, size - 1, LENS_GRID))
+    rays = np.linalg.solve(K, np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))  # pinhole rays, z = 1
+    centre = K[:2, 2]
+    pin = np.stack([u.ravel(), v.ravel()], 1)
+    dist = distort(rays.T, K, lens)
+    r_pin = np.linalg.norm(pin - centre, axis=1)
+    far = r_pin > 0.05 * size
+    wider = distort(rays.T * np.array([1.01, 1.01, 1.0]), K, lens)
+    folds = np.linalg.norm(wider - centre, axis=1) <= np.linalg.norm(dist - centre, axis=1)
+    out["lens_shift"] = float((np.linalg.norm(dist - pin, axis=1)[far] / r_pin[far]).max()) if far.any() else 0.0
+    out["lens_folds"] = bool(folds[far].any())
+    return out
+
+
+def frame_order(small: list[np.ndarray], k: int) -> float | None:
+    """Frames k and k + 1 against the four around them: the image change in the stored order over the change with
+    the two swapped (d(k-1, k+1) + d(k+1, k) + d(k, k+2) against d(k-1, k) + d(k, k+1) + d(k+1, k+2)). In a moving
+    scene a swapped pair makes two double steps of the stored order (about 5 single steps against 3 swapped back);
+    a clean pair about 3 against 5. None without motion."""
+    d = lambda a, b: float(np.abs(small[a] - small[b]).mean())  # noqa: E731
+    stored = d(k - 1, k) + d(k, k + 1) + d(k + 1, k + 2)
+    if stored < ORDER_MIN_MOTION:
+        return None
+    return (d(k - 1, k + 1) + d(k + 1, k) + d(k, k + 2)) / stored
+
+
 def frame_figures(g: h5py.Group, ee_t: np.ndarray, ee_pos: np.ndarray) -> dict:
     """Image motion (mean absolute grey change between consecutive frames, one frame at a time: memory flat)
     against end-effector speed: the lag that correlates them best (a camera clock behind the robot's shows motion
-    late) and that correlation."""
+    late) and that correlation; and the frame order against the motion (frame_order: the lowest ratio over the
+    episode, and where)."""
     fr = g["frames"]
     t = fr["t"][()]
-    out: dict = {"clock_lag_s": None, "clock_r": None}
+    out: dict = {"clock_lag_s": None, "clock_r": None, "order_ratio": None, "order_at_s": None}
     if len(t) < 8 or len(ee_t) < 8:
         return out
     prev, motion = None, []
+    small: list[np.ndarray] = []  # the last 4 frames at 32 px: all the order check needs
     for i in range(len(t)):
         grey = fr["rgb"][i].mean(2, dtype=np.float32)
+        small = [*small[-3:], cv2.resize(grey, (32, 32), interpolation=cv2.INTER_AREA)]
+        if len(small) == 4:
+            r = frame_order(small, 1)
+            if r is not None and (out["order_ratio"] is None or r < out["order_ratio"]):
+                out["order_ratio"], out["order_at_s"] = r, float(t[i - 2])
         if prev is not None:
             motion.append(float(np.abs(grey - prev).mean()))
         prev = grey
