@@ -52,14 +52,14 @@ def main(argv: list[str] | None = None) -> int:
         raise AdlError(f"{args.model}: no {args.checkpoint} checkpoint; train the model first")
     from .evaluation.rollouts import RolloutConfig, run_rollouts, write_summary
     from .policy.checkpoint import load_checkpoint
-    from .policy.models import ModelConfig
+    from .policy.models import DEFAULT_STEPS, MODELS, ModelConfig
     from .sim.dagger import OperatorRule
 
     config = load_checkpoint(args.model / checkpoint).get("config", {})
     model = ModelConfig.from_dict(config)
     if not model.closed_loop:
         raise AdlError(f"{args.model}: not a closed-loop model (train --closed-loop); a rollout re-plans from frames")
-    steps = args.steps or (16 if str(config.get("model", "")).startswith("dp") else 1)
+    steps = args.steps or DEFAULT_STEPS[MODELS[model.model][0]]  # the objective's default sampler (FM-1, DP-16)
     cfg = RolloutConfig(args.model, args.data, args.split or args.data.with_name("split.json"), args.out, checkpoint,
                         args.execute, model.rate_hz, steps, args.seed,
                         OperatorRule(*args.operator) if args.operator else None, args.time_limit, args.workers,

@@ -31,15 +31,19 @@ def merged(*details: dict) -> dict:
     return out
 
 
+# the rollouts each DAgger arm was trained on (every round's so far), and the operator's arm's
+EXPERT_ROLLOUTS = {"r1": ("dagger_rollout_r1",), "r2": ("dagger_rollout_r1", "dagger_rollout_r2")}
+OPERATOR_ROLLOUTS = {"hg_r1": "hg_rollout_r1"}
+
+
 def labelled(arm: str, model: str, rollouts: dict[str, dict]) -> str:
     """The states labelled for this arm's training: re-plans the expert labelled (DAgger: every one of the rounds'
     rollouts) or the operator drove (HG-DAgger), with the operator's seconds."""
-    if arm == "r1" or arm == "r2":
-        rounds = ["r1", "r2"][: int(arm[1])]
-        found = [rollouts[f"dagger_rollout_{r}_{model}"] for r in rounds if f"dagger_rollout_{r}_{model}" in rollouts]
-        return f"{sum(int(s['plans']) for s in found):,} re-plans (expert)" if len(found) == len(rounds) else "-"
-    if arm == "hg_r1":
-        s = rollouts.get(f"hg_rollout_r1_{model}")
+    if arm in EXPERT_ROLLOUTS:
+        found = [rollouts.get(f"{r}_{model}") for r in EXPERT_ROLLOUTS[arm]]
+        return "-" if None in found else f"{sum(int(s['plans']) for s in found if s):,} re-plans (expert)"
+    if arm in OPERATOR_ROLLOUTS:
+        s = rollouts.get(f"{OPERATOR_ROLLOUTS[arm]}_{model}")
         return f"{s['operator_plans']:,} of {s['plans']:,} re-plans (operator, {s['operator_s']:.0f} s)" if s else "-"
     return "0"
 
