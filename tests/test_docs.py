@@ -70,3 +70,12 @@ def test_the_example_topic_map_names_every_key_at_the_codes_default() -> None:
     example = REPO / "pipelines" / "topics.example.yaml"
     assert set(yaml.safe_load(example.read_text())) == {f.name for f in fields(TopicMap)}
     assert TopicMap.load(example) == TopicMap()
+
+
+def test_readme_stays_a_front_page() -> None:
+    """README is what adlpipe is, how to install and start, one results table and links: the studies' figures live
+    in docs/science (findings.md), so the front page does not grow back into a lab notebook."""
+    text = (REPO / "README.md").read_text()
+    assert len(text.splitlines()) <= 140
+    assert text.count("<!-- results:") == 1  # the default run's table, nothing else
+    assert "docs/science/findings.md" in text
