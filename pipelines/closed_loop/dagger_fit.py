@@ -40,6 +40,13 @@ def rollout_names(data: Path, demos: set[str], exclude: set[str] = frozenset()) 
         return sorted(n for n in f["episodes"] if n not in demos and n not in exclude)
 
 
+def frames_of(data: Path, names: list[str]) -> int:
+    """How many training windows the episodes give (a window per frame up to the end of the demonstration)."""
+    with h5py.File(data) as f:
+        return sum(int(np.searchsorted(f["episodes"][n]["frames/t"][()], float(f["episodes"][n].attrs["duration_s"]),
+                                       "right")) for n in names)
+
+
 def windows_of(data: Path, names: list[str], stats: dict, cfg, per_episode: int) -> WindowDataset:
     w = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz, "recovery", cfg.use_image)
     return WindowDataset(data, names, stats, cfg.image_size, w, cfg.use_depth, frames_per_episode=per_episode,
@@ -118,7 +125,10 @@ def main() -> None:
                 "DAgger round 1": Path(f"models_dagger/r1/{a.model}/best.pt"),
                 "DAgger round 2": Path(f"models_dagger/r2/{a.model}/best.pt"),
                 "control": Path(f"models_dagger/more/{a.model}/best.pt")}
-    out: dict = {"model": a.model, "per_episode": a.per_episode, "sets": {k: len(v[1]) for k, v in sets.items()}}
+    out: dict = {"model": a.model, "per_episode": a.per_episode, "sets": {k: len(v[1]) for k, v in sets.items()},
+                 # round 1's training windows: the training demonstrations' against its rollouts'
+                 "round1_windows": {"demonstrations": frames_of(r1, sorted(split["train"])),
+                                    "rollouts": frames_of(r1, r1_names)}}
     for arm, path in policies.items():
         if not path.exists():
             continue
