@@ -2,6 +2,7 @@
 #                                   `make test` (install + lint + the test suite)
 PY ?= python3
 VENV ?= .venv
+TORCH_INDEX ?=
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 export DVC_NO_ANALYTICS = 1
@@ -10,8 +11,9 @@ export DVC_NO_ANALYTICS = 1
 
 $(BIN)/.installed: pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
-	# torch first, pinned: the CPU build on disk, never a multi-GB CUDA download
-	$(BIN)/pip install -q torch==2.13.0
+	# torch first, pinned; TORCH_INDEX picks the build (https://download.pytorch.org/whl/cpu: CPU; .../whl/cuXXX:
+	# CUDA); unset, pip's own index and configuration decide (on the project's machines: the CPU build on disk)
+	$(BIN)/pip install -q torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(BIN)/pip install -q -c constraints.txt -e ".[test]"
 	# Push-T's environment without its opencv-python requirement (adlpipe has opencv-python-headless)
 	$(BIN)/pip install -q --no-deps gym-pusht==0.1.8
