@@ -290,6 +290,29 @@ def test_training_loss_falls_on_a_tiny_set(ingested: Path, split_file: Path, tmp
     assert policy.cfg == cfg and "stats" in ck
 
 
+def test_the_resumable_checkpoint_is_written_at_validations_not_every_epoch(
+        ingested: Path, split_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """last.pt (the optimiser's state: a seventh of a default run when written every 5-step epoch) after the first
+    epoch, at every validation and when a run stops; a resumed run goes on from the last of them."""
+    from adlpipe.training import loop
+
+    written: list[int] = []
+    real = loop.save_atomic
+
+    def record(obj: dict, path: Path) -> None:
+        if path.name == "last.pt":
+            written.append(obj["epoch"])
+        real(obj, path)
+
+    monkeypatch.setattr(loop, "save_atomic", record)
+    cfg = ModelConfig(model="fm_cnn", **TINY)
+    kw = dict(epochs=7, batch_size=2, lr=1e-3, warmup_steps=2, seed=5, val_every=3)
+    assert train(ingested, split_file, tmp_path / "m", cfg, stop_after_epoch=5, **kw) == {"interrupted_at": 5}
+    assert written == [1, 3, 5]
+    train(ingested, split_file, tmp_path / "m", cfg, **kw)
+    assert written == [1, 3, 5, 6, 7]  # the resumed run's first epoch (6), then the last (a validation)
+
+
 def test_resume_after_interruption_matches_an_uninterrupted_run(ingested: Path, split_file: Path,
                                                                  tmp_path: Path) -> None:
     cfg = ModelConfig(model="dp_cnn", **TINY)

@@ -31,6 +31,8 @@ from ..runtime import Ranks, all_sum, autocast, barrier, to_device
 from .data import datasets, training_batches, training_episodes
 from .validation import final_metrics, measure, validation_set
 
+CHECKPOINT_EVERY_S = 60.0  # last.pt at least this often, and at every validation (the default's: every 20 epochs)
+
 LOG_FIELDS = ["epoch", "step", "train_loss", "test_loss", "val_px", "lr", "seconds"]
 
 
@@ -95,6 +97,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
 
     bar = tqdm(range(start_epoch, epochs), initial=start_epoch, total=epochs, desc=f"train {cfg.model}",
                unit="epoch", file=sys.stderr, disable=None if progress and ranks.main else True)
+    saved = time.time()
     for epoch in bar:
         t0 = time.time()
         loader.set_epoch(epoch)  # the epoch's permutation, windows, augmentation and noise: resumable exactly
@@ -118,7 +121,12 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             if save_every and (epoch + 1) % save_every == 0:
                 save_atomic(inference_checkpoint(epoch + 1),
                             work / "checkpoints" / f"step_{(epoch + 1) * steps_per_epoch:07d}.pt")
-            save_atomic(resumable(policy, ema, opt, sched, epoch + 1, history, cfg, hparams, stats), last)
+            if (val_px is not None or test_loss is not None or epoch == start_epoch
+                    or time.time() - saved >= CHECKPOINT_EVERY_S or epoch + 1 == stop_after_epoch):
+                # not every epoch: an epoch of the default is 5 steps, and writing the optimiser's state after
+                # each took a seventh of the run (bench/train_profile.py); a kill loses at most this much
+                save_atomic(resumable(policy, ema, opt, sched, epoch + 1, history, cfg, hparams, stats), last)
+                saved = time.time()
         barrier(ranks)  # the others wait while rank 0 validates and writes
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
             return {"interrupted_at": epoch + 1}
