@@ -355,9 +355,26 @@ def nonsense_distortion(messages: list[Message]) -> list[Message]:
     return messages
 
 
+ACTION = "/arm/tcp_command"  # the recorder's commanded end effector (JointState positions x, y, z, ...)
+LATE_S = 0.3
+
+
+def command_late(messages: list[Message]) -> list[Message]:
+    """The command's values LATE_S behind the arm's (a bridge that republishes a stale buffer): each command carries
+    the values of the one sent LATE_S before it (the first held), at its own stamp."""
+    acts = sorted((m for m in messages if m[0] == ACTION), key=lambda m: stamp_ns(m[3]))
+    stamps = np.array([stamp_ns(m[3]) for m in acts])
+    values = [np.array(m[3].position, float) for m in acts]
+    for m, t in zip(acts, stamps, strict=True):
+        k = max(int(np.searchsorted(stamps, t - int(LATE_S * 1e9), "right")) - 1, 0)
+        m[3].position = values[k].copy()
+    return messages
+
+
 DEFECTS_E3: dict[str, tuple[Edit, str]] = {  # the kinds no issue had named, now checked: defect -> (edit, flag)
     "two frames swapped": (frames_swapped, "frame order"),
     "distortion k1 = 3": (nonsense_distortion, "camera lens"),
+    "command 300 ms late": (command_late, "command timing"),
 }
 COPIES = ("near-duplicate episode", "time-reversed copy", "near-duplicate 0.2 mm")  # planted from another bag
 

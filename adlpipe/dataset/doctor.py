@@ -72,6 +72,8 @@ class Limits:
     clock_min_r: float = 0.5  # ... with at least this correlation: the camera's clock is off
     lens_shift: float = 0.5  # the lens model moving a point of the image by this share of its distance from the
     #                          principal point: distortion coefficients of no real polynomial lens
+    command_lead_s: float = 0.05  # the measured end effector moving this long before the command that drives it
+    #                               (at a correlation of clock_min_r or more): the command's values or stamps late
     frame_swap: float = 0.9  # the image change in the stored order over that with two frames swapped back below
     #                          this: two frames stored in the wrong order
     # doctor_checks: against the dataset's medians (3 episodes per task are enough)
@@ -292,6 +294,11 @@ def signal_flags(fig: dict, limits: Limits) -> list[str]:
         out.append(f"action frozen: the action stream repeats one value for {frozen:.1f} s from "
                    f"{fig['action_frozen_at_s']:.2f} s while the end effector moves {fig['action_frozen_moved_m']:.2f}"
                    f" m (limits {limits.flatline_s} s, {limits.flatline_moved_m} m)")
+    lag, r = fig["command_lag_s"], fig["command_r"]
+    if lag is not None and lag < -limits.command_lead_s and r >= limits.clock_min_r:
+        out.append(f"command timing: the measured end effector moves {1000 * -lag:.0f} ms before the command that "
+                   f"drives it (correlation {r:.2f}; an arm follows its command, limit "
+                   f"{1000 * limits.command_lead_s:.0f} ms): the action stream's values or stamps late?")
     if fig["gripper_chatter"] >= limits.chatter:
         out.append(f"gripper chatter: {fig['gripper_chatter']} opening or closing crossings within "
                    f"{limits.chatter_s} s (limit {limits.chatter})")

@@ -8,7 +8,8 @@ are enough): the end effector still moving at the last frame where the others en
 channels in the other order (BGR), images much darker, a camera at a fraction of the others'
 rate, a gripper that never moves in a task whose other episodes grasp, a path nearer another task's episodes than
 its own (a wrong label), and a time-reversed copy of another episode. The frames' order against their motion
-(two frames swapped) and the lens model against the image (distortion no real lens has). Not caught: a camera
+(two frames swapped) and the lens model against the image (distortion no real lens has); the command's timing
+against the arm's is doctor_signals.command_lag. Not caught: a camera
 moved after calibration (stale extrinsics; docs/guide/curation.md). Each threshold is a field of doctor.Limits.
 """
 
