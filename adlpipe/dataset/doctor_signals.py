@@ -85,7 +85,7 @@ def action_figures(g: h5py.Group, ee_t: np.ndarray, ee_pos: np.ndarray) -> dict:
 def command_lag(act_t: np.ndarray, act: np.ndarray, ee_t: np.ndarray, ee_pos: np.ndarray) -> dict:
     """The lag (s) by which the measured end effector's speed best follows the commanded end effector's (the
     action stream's first three values, when they are a position), and that correlation: an arm moves after it is
-    told to (the default's 200 recordings: 0.07-0.08 s, r 0.87 or more), so a command that trails the arm carries
+    told to (the default's 200 recordings: 0.06-0.09 s, r 0.84 or more), so a command that trails the arm carries
     late values or late stamps."""
     out: dict = {"command_lag_s": None, "command_r": None}
     if act.ndim != 2 or act.shape[1] < 3 or len(ee_t) < 8 or not np.isfinite(act[:, :3]).all():
