@@ -134,6 +134,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--steps", type=int_range(1), default=None,
                    help="train for this many optimiser steps in all instead of --epochs (as many epochs as that "
                    "takes): one budget for runs on different numbers of episodes (DAgger rounds)")
+    p.add_argument("--stop-when-converged", type=int_range(1), default=None, metavar="FLOOR",
+                   help="stop at the first validation from epoch FLOOR on at which the run has converged by the "
+                   "2 %% rule (its best val px no more than 2 %% below the best of its first four fifths); the "
+                   "learning-rate schedule stays --epochs', so the run is the capped run's first epochs exactly")
     p.add_argument("--corrections-only", action="store_true",
                    help="closed loop (HG-DAgger): an episode whose bag carried an operator's intervention flag gives "
                    "training windows only where the operator drove; the demonstrations give every frame")
@@ -205,12 +209,15 @@ def main(argv: list[str] | None = None) -> int:
                       workers=args.workers, device=device, precision=args.precision, ranks=ranks,
                       windows_per_epoch=args.windows_per_epoch, save_every=args.save_every,
                       open_files=args.open_files, resume_dir=args.resume_dir, init=args.init,
-                      corrections_only=args.corrections_only, steps=args.steps)
+                      corrections_only=args.corrections_only, steps=args.steps,
+                      stop_floor=args.stop_when_converged)
     if not ranks.main:
         return 0
     val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"
            f"{'' if m['converged'] else ', NOT CONVERGED'}" if m["val_px_best"] is not None else "")
-    print(f"{out}: {cfg.model} trained {m['epochs']} epochs ({m['optimizer_steps']} steps) in {m['seconds']:.0f} s, "
+    stopped = f" (converged: stopped at {m['epochs']} of {args.epochs})" if "stopped_converged_at" in m else ""
+    print(f"{out}: {cfg.model} trained {m['epochs']} epochs{stopped} ({m['optimizer_steps']} steps) in "
+          f"{m['seconds']:.0f} s, "
           f"train loss {m['train_loss']:.4f}, test loss {m['test_loss']:.4f}{val}")
     return 0
 

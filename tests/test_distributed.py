@@ -134,3 +134,28 @@ def test_first_frames_are_cached_only_while_they_fit(four: tuple[Path, Path]) ->
     assert small.cache
     small[0]
     assert 0 in small._items  # kept after the first read
+
+
+def test_a_run_stopped_when_converged_is_the_capped_run_cut_at_the_rule(four: tuple[Path, Path],
+                                                                       tmp_path: Path) -> None:
+    """--stop-when-converged: the run stops at the first validation from the floor on at which the 2 % rule holds
+    on its history so far, until then epoch for epoch the capped run (the schedule stays the cap's); two processes
+    stop together (rank 0 validates, every process leaves the loop)."""
+    from adlpipe.training.validation import converged
+
+    data, split = four
+    cfg = preset("small", "fm_cnn", horizon=32)  # what the command line below configures
+    kw = dict(epochs=12, batch_size=2, lr=1e-7, warmup_steps=2, seed=3, val_fraction=0.5, val_every=2)
+    train(data, split, tmp_path / "a", cfg, **kw)
+    full = load_checkpoint(tmp_path / "a" / "model.pt")["history"]
+    expected = next((r["epoch"] for r in full if r["epoch"] >= 4 and r["val_px"] is not None
+                     and converged(full[:r["epoch"]])), 12)
+    assert expected < 12  # at this learning rate val px stays flat, so the rule holds early
+    m = train(data, split, tmp_path / "b", cfg, stop_floor=4, **kw)
+    stopped = load_checkpoint(tmp_path / "b" / "model.pt")["history"]
+    assert m["epochs"] == m["stopped_converged_at"] == expected == len(stopped) and m["converged"]
+    assert [r["train_loss"] for r in stopped] == [r["train_loss"] for r in full[:expected]]
+    torchrun("--model", "fm_cnn", "--data", data, "--split", split, "--out", tmp_path / "c", "--epochs", "12",
+             "--batch-size", "2", "--lr", "1e-7", "--warmup-steps", "2", "--seed", "3", "--val-fraction", "0.5",
+             "--val-every", "2", "--stop-when-converged", "4", "--threads", "1", "--device", "cpu")
+    assert len(load_checkpoint(tmp_path / "c" / "model.pt")["history"]) == expected

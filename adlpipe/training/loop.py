@@ -29,7 +29,7 @@ from ..policy.objectives import Noise
 from ..policy.optim import ADAMW_BETAS, EMA, WARMUP_STEPS, cosine_with_warmup
 from ..runtime import Ranks, all_sum, autocast, barrier, to_device
 from .data import datasets, training_batches, training_episodes
-from .validation import final_metrics, measure, validation_set
+from .validation import converged, final_metrics, measure, validation_set
 
 CHECKPOINT_EVERY_S = 60.0  # last.pt at least this often, and at every validation (the default's: every 20 epochs)
 
@@ -43,7 +43,7 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
           device: torch.device | None = None, precision: str = "fp32", ranks: Ranks | None = None,
           windows_per_epoch: str = "episodes", save_every: int = 0, open_files: int = OPEN_FILES,
           resume_dir: Path | None = None, init: Path | None = None, corrections_only: bool = False,
-          steps: int | None = None) -> dict:
+          steps: int | None = None, stop_floor: int | None = None) -> dict:
     """Train (or resume) and return the final metrics. stop_after_epoch simulates an interruption (tests).
     resume_dir: where a run in progress keeps its checkpoints (default: out; see publish). batch_size is the global
     batch: under torchrun (ranks) each process takes batch_size / world of it; rank 0
@@ -51,7 +51,11 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     in <out>/checkpoints/ (the benchmark's learning curves). init: a trained model's checkpoint to start from (its
     EMA weights and normalisation; a DAgger round goes on from the previous round's policy), with a fresh optimiser
     and schedule over this run's epochs. corrections_only: see training.data.datasets. steps: the optimiser steps
-    in all instead of `epochs` (as many epochs as that takes: one budget whatever the number of episodes)."""
+    in all instead of `epochs` (as many epochs as that takes: one budget whatever the number of episodes).
+    stop_floor: stop at the first validation from this epoch on at which the run has converged by the 2 % rule
+    that judges convergence (validation.converged); the schedule stays the cap's (`epochs`), so a stopped run is the
+    capped run's first epochs exactly, and its best.pt the capped run's whenever the best epoch came before the
+    stop."""
     device, ranks = device or torch.device("cpu"), ranks or Ranks()
     out.mkdir(parents=True, exist_ok=True)
     work = resume_dir or out
@@ -77,7 +81,8 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
                "split": train_keys,  # by recording, so a run resumes on the same scenes re-recorded elsewhere
                "val_fraction": val_fraction, "val_every": val_every, "augment": augment,
                "windows_per_epoch": windows_per_epoch,
-               **({"init": str(init), "corrections_only": corrections_only} if init or corrections_only else {})}
+               **({"init": str(init), "corrections_only": corrections_only} if init or corrections_only else {}),
+               **({"stop_floor": stop_floor} if stop_floor else {})}
 
     torch.manual_seed(seed)
     policy, model, opt, sched, ema = optimisation(cfg, device, ranks, lr, weight_decay, warmup_steps,
@@ -130,11 +135,18 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         barrier(ranks)  # the others wait while rank 0 validates and writes
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
             return {"interrupted_at": epoch + 1}
+        done = bool(ranks.main and stop_floor and epoch + 1 >= stop_floor and history[-1]["val_px"] is not None
+                    and converged(history))
+        if all_sum([float(done)], device, ranks)[0] > 0:  # every process stops together
+            break
     if not ranks.main:
         return {}
-    publish(inference_checkpoint(epochs), work, out)
-    final = final_metrics(history, cfg, epochs, steps_per_epoch, len(train_names), len(val_names), ranks, device,
+    ran = int(history[-1]["epoch"]) if history else epochs
+    publish(inference_checkpoint(ran), work, out)
+    final = final_metrics(history, cfg, ran, steps_per_epoch, len(train_names), len(val_names), ranks, device,
                           precision)
+    if ran < epochs:
+        final["stopped_converged_at"] = ran  # of the cap's `epochs`
     write_json_atomic(out / "metrics.json", final)
     write_log(log_csv, history)
     return final
