@@ -407,3 +407,29 @@ def test_claims_rest_on_the_paired_interval_of_per_episode_errors() -> None:
     unresolved = line(ev(0.005))
     assert "**not resolved at n = 40 (about " in unresolved and "episodes would resolve it" in unresolved
     assert "x second" not in unresolved  # FM vs BC has no tolerance
+
+
+def test_a_scene_plans_the_same_in_any_batch_of_scenes(ingested: Path, split_file: Path, tmp_path: Path) -> None:
+    """Open-loop replay predicts each fresh scene from the seed on its own: DP's and FM's noise, and so a scene's
+    outcome, do not depend on which other scenes a replay batch holds (as a closed-loop rollout's do not)."""
+    from types import SimpleNamespace
+
+    import h5py
+    import numpy as np
+
+    from adlpipe.policy.inference import predict_scenes
+    from adlpipe.runtime import Placement
+
+    for model in ("dp_cnn", "fm_cnn"):
+        train(ingested, split_file, tmp_path / model, ModelConfig(model=model, **TINY), epochs=1, batch_size=2,
+              val_fraction=0.0)
+    with h5py.File(ingested) as f:
+        scenes = [SimpleNamespace(rgb=g["rgb"][()], affordance=g["affordance"][()], depth=None)
+                  for g in (f["episodes"][n] for n in sorted(f["episodes"]))]
+    for model in ("dp_cnn", "fm_cnn"):
+        every = predict_scenes(tmp_path / model, "model.pt", scenes, [1, 4], [4], 0, Placement())
+        some = predict_scenes(tmp_path / model, "model.pt", [scenes[2], scenes[0]], [1, 4], [4], 0, Placement())
+        assert set(every) == set(some) and len(every) >= 1
+        for label in every:
+            np.testing.assert_array_equal(every[label][[2, 0]], some[label])
+            assert not np.allclose(every[label][0], every[label][1])  # the scenes differ, so their plans do

@@ -111,9 +111,13 @@ def predict_scenes(model_dir: Path, checkpoint: str, scenes: list, fm_steps: lis
     if cfg.cameras and len(cfg.cameras) > 1:
         raise AdlError(f"{model_dir}: sees cameras {', '.join(cfg.cameras)}; the ADL world's scenes have one camera")
     norm = Normalizer(ck["stats"])
-    obs = torch.stack([torch.from_numpy(observation_from_arrays(s.rgb, s.affordance, s.depth, cfg.image_size,
-                                                                cfg.use_depth)) for s in scenes])
-    return predictions(model_dir, policy, norm, obs, fm_steps, dp_steps, seed, placement)
+    per_scene = []
+    for s in scenes:  # one at a time, each from the seed: a scene's noise, and so its outcome, is the same in any
+        # batch of scenes replay draws (as every closed-loop rollout's is)
+        obs = torch.from_numpy(observation_from_arrays(s.rgb, s.affordance, s.depth, cfg.image_size,
+                                                       cfg.use_depth))[None]
+        per_scene.append(predictions(model_dir, policy, norm, obs, fm_steps, dp_steps, seed, placement))
+    return {label: np.concatenate([p[label] for p in per_scene]) for label in per_scene[0]} if per_scene else {}
 
 
 def predictions(model_dir: Path, policy: Policy, norm: Normalizer, obs: torch.Tensor, fm_steps: list[int],
