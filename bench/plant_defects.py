@@ -371,10 +371,25 @@ def command_late(messages: list[Message]) -> list[Message]:
     return messages
 
 
+def gripper_inverted(messages: list[Message]) -> list[Message]:
+    """The gripper's reading upside down (a driver's sign or offset convention: open reads closed), its range kept."""
+    values = [m[3].position[list(m[3].name).index(GRIPPER)] for m in messages
+              if m[0] == JOINTS and GRIPPER in list(m[3].name)]
+    lo, hi = min(values), max(values)
+    for msg in _of(messages, (JOINTS,)):
+        if GRIPPER in list(msg.name):
+            k = list(msg.name).index(GRIPPER)
+            pos = np.array(msg.position, float)
+            pos[k] = lo + hi - pos[k]
+            msg.position = pos
+    return messages
+
+
 DEFECTS_E3: dict[str, tuple[Edit, str]] = {  # the kinds no issue had named, now checked: defect -> (edit, flag)
     "two frames swapped": (frames_swapped, "frame order"),
     "distortion k1 = 3": (nonsense_distortion, "camera lens"),
     "command 300 ms late": (command_late, "command timing"),
+    "gripper inverted": (gripper_inverted, "gripper inverted"),
 }
 COPIES = ("near-duplicate episode", "time-reversed copy", "near-duplicate 0.2 mm")  # planted from another bag
 

@@ -29,6 +29,7 @@ PLANTED = {  # bag -> (defect, the flag that must name it)
     "pass_the_water_0002.mcap": ("two frames swapped", "frame order"),
     "cover_the_food_0002.mcap": ("distortion k1 = 3", "camera lens"),
     "brush_the_teeth_0002.mcap": ("command 300 ms late", "command timing"),
+    "wipe_the_nose_0002.mcap": ("gripper inverted", "gripper inverted"),
 }
 
 
@@ -57,7 +58,7 @@ def test_each_planted_defect_is_named_and_no_clean_episode_is_flagged(doctored: 
     for bag, (defect, flag) in PLANTED.items():
         assert flag in doctored[bag], (defect, doctored[bag])
     clean = {bag: flags for bag, flags in doctored.items() if bag not in PLANTED}
-    assert len(clean) == 5 and not any(clean.values()), clean
+    assert len(clean) == 4 and not any(clean.values()), clean
 
 
 @pytest.mark.parametrize("frames", [1, 2])

@@ -23,6 +23,7 @@ from .doctor_checks import (
     dataset_flags,
     end_speed,
     frame_figures,
+    gripper_profile,
     image_figures,
     joint_units,
     lens_figures,
@@ -78,7 +79,10 @@ class Limits:
     #                          this: two frames stored in the wrong order
     # doctor_checks: against the dataset's medians (3 episodes per task are enough)
     colour_off: float = 0.05  # mean colour this far (sum over R G B, 0-1) from the dataset's ...
-    swap_gain: float = 0.5  # ... and red and blue swapped this much nearer to it: BGR stored as RGB
+    swap_gain: float = 0.5  # ... and red and blue swapped this much nearer to it: BGR stored as RGB (the same
+    #                         gain for a gripper reading upside down)
+    gripper_off: float = 0.25  # the gripper's reading this far (share of its range, mean over the episode) from the
+    #                            task's other episodes' median
     dark: float = 0.5  # mean brightness below this share of the dataset's median
     slow_camera: float = 0.6  # a frame rate below this share of the dataset's median
     label_ratio: float = 0.5  # the path this share nearer another task's episodes than its own: a wrong label
@@ -103,6 +107,7 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
     crossings = gripper_crossings(fr["gripper"][()])
     fig["gripper_events"] = None if crossings is None else len(crossings)
     fig["gripper_chatter"] = chatter(t, crossings, limits.chatter_s)
+    fig["gripper_profile"] = gripper_profile(fr["gripper"][()])
     fig.update(joint_figures(g, json.loads(g.attrs.get("topic_map", "{}") or "{}").get("gripper_joint"), ee_t,
                              ee_pos))
     fig.update(action_figures(g, ee_t, ee_pos))

@@ -26,6 +26,7 @@ from ..geometry import path_at
 CLOCK_MAX_LAG_S = 0.5  # lags searched between image motion and end-effector speed
 SAMPLES = 8  # frames read for colour and brightness
 PATH_POINTS = 32  # the end-effector path resampled for cross-episode comparison
+GRIPPER_POINTS = 32  # the gripper reading resampled over the episode for comparison within its task
 LENS_GRID = 9  # points per side of the image grid the lens check moves through the lens
 ORDER_MIN_MOTION = 1.0  # grey levels (0-255, mean over 32 x 32) of change over three steps below which the frame
 #                         order is not judged (a still scene orders any way)
@@ -181,11 +182,22 @@ def dataset_flags(figs: dict[str, dict], paths: dict[str, np.ndarray], limits) -
         if fps[k] < limits.slow_camera * med_fps:
             f["flags"].append(f"camera rate: {fps[k]:.1f} fps against the dataset's median {med_fps:.1f} "
                               f"(limit {limits.slow_camera:.0%} of it)")
-    _gripper_flags(figs, names)
+    _gripper_flags(figs, names, limits)
     _path_flags(figs, names, paths, limits)
 
 
-def _gripper_flags(figs: dict[str, dict], names: list[str]) -> None:
+def gripper_profile(grip: np.ndarray) -> list[float] | None:
+    """The gripper joint at GRIPPER_POINTS instants evenly over the episode's frames, as a share of its own range
+    (0 its lowest reading, 1 its highest); None without a moving gripper reading."""
+    ok = np.flatnonzero(np.isfinite(grip))
+    if len(ok) < 2 or np.ptp(grip[ok]) < 1e-6:
+        return None
+    g = grip[ok].astype(float)
+    at = np.interp(np.linspace(0, len(g) - 1, GRIPPER_POINTS), np.arange(len(g)), g)
+    return [float(x) for x in (at - g.min()) / np.ptp(g)]
+
+
+def _gripper_flags(figs: dict[str, dict], names: list[str], limits) -> None:  # noqa: ANN001 - Limits
     for members in by_task(figs, names).values():
         grasping = [n for n in members if (figs[n]["gripper_events"] or 0) > 0]
         if len(grasping) < 2:
@@ -194,6 +206,17 @@ def _gripper_flags(figs: dict[str, dict], names: list[str]) -> None:
             if figs[n]["gripper_events"] == 0:
                 figs[n]["flags"].append(f"stuck gripper: it never opens or closes, while {len(grasping)} of the "
                                         f"task's {len(members)} episodes do")
+        profiled = [n for n in members if figs[n].get("gripper_profile")]
+        if len(profiled) < 3:
+            continue
+        for n in profiled:  # against the others' median: an inverted reading matches it upside down
+            others = np.median([figs[m]["gripper_profile"] for m in profiled if m != n], 0)
+            p = np.asarray(figs[n]["gripper_profile"])
+            as_is, inverted = float(np.abs(p - others).mean()), float(np.abs(1 - p - others).mean())
+            if as_is > limits.gripper_off and inverted < limits.swap_gain * as_is:
+                figs[n]["flags"].append(f"gripper inverted: its reading upside down matches the task's other "
+                                        f"episodes {inverted:.2f} against {as_is:.2f} as stored (share of its range; "
+                                        f"open read as closed?)")
 
 
 def _path_flags(figs: dict[str, dict], names: list[str], paths: dict[str, np.ndarray], limits) -> None:  # noqa: ANN001
