@@ -30,6 +30,7 @@ import os
 import shutil
 import stat
 import sys
+import traceback
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -74,15 +75,18 @@ def _report_full_disk_once() -> None:
     # anything else goes on to the hooks set before (run_cli's, which keeps a Ctrl-C in a finaliser quiet)
     previous_unraisable, previous_excepthook = sys.unraisablehook, sys.excepthook
 
-    def unraisable(u: sys.UnraisableHookArgs) -> None:
+    def ref_count(exc: BaseException | None) -> bool:
         # h5py's destructors also report "Can't decrement id ref count" once HDF5 failed to write (seen about one
-        # run in ten when the disk fills in a pool worker): the same full disk, said again
-        after_failure = isinstance(u.exc_value, RuntimeError) and "ref count" in str(u.exc_value)
-        if not full_disk(u.exc_value) and not (after_failure and "h5py" in str(u.object)):
+        # run in ten when the disk fills in a pool worker, through either hook): the same full disk, said again
+        return isinstance(exc, RuntimeError) and "ref count" in str(exc)
+
+    def unraisable(u: sys.UnraisableHookArgs) -> None:
+        if not full_disk(u.exc_value) and not (ref_count(u.exc_value) and "h5py" in str(u.object)):
             previous_unraisable(u)
 
     def excepthook(kind: type[BaseException], exc: BaseException, tb: object) -> None:
-        if not full_disk(exc):
+        in_h5py = any("h5py" in frame.filename for frame in traceback.extract_tb(tb))  # type: ignore[arg-type]
+        if not full_disk(exc) and not (ref_count(exc) and in_h5py):
             previous_excepthook(kind, exc, tb)
 
     sys.unraisablehook, sys.excepthook = unraisable, excepthook
