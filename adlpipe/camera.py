@@ -76,16 +76,20 @@ def project(points: np.ndarray, K: np.ndarray, T_base_camera: np.ndarray, lens: 
     if size is None:
         uv[front] = out
         return uv
-    # 1 % further out in normalised coordinates must land further from the principal point: else the polynomial
-    # has folded back and the distorted pixel is not where the point appears
-    wider = pc[front] * np.array([1.01, 1.01, 1.0])
-    centre = np.asarray(K, float)[:2, 2]
-    monotonic = np.linalg.norm(distort(wider, K, lens) - centre, axis=1) > np.linalg.norm(out - centre, axis=1)
     inside = (_in_image(out, size) | _in_image(uv[front], size)) & (
-        monotonic | (np.linalg.norm(pc[front][:, :2], axis=1) < 1e-9))
+        maps_outward(pc[front], K, lens, out) | (np.linalg.norm(pc[front][:, :2], axis=1) < 1e-9))
     idx = np.flatnonzero(front)[inside]
     uv[idx] = out[inside]
     return uv
+
+
+def maps_outward(pc: np.ndarray, K: np.ndarray, lens: Lens, distorted: np.ndarray) -> np.ndarray:
+    """Per camera-frame point, whether the lens still maps outward there: the point 1 % further out in normalised
+    coordinates lands further from the principal point than `distorted` (its own distorted pixel); where not, the
+    polynomial has folded back and the distorted pixel is not where the point appears."""
+    centre = np.asarray(K, float)[:2, 2]
+    wider = distort(np.asarray(pc, float) * np.array([1.01, 1.01, 1.0]), K, lens)
+    return np.linalg.norm(wider - centre, axis=1) > np.linalg.norm(distorted - centre, axis=1)
 
 
 def _in_image(uv: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -104,10 +104,11 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
     ee_t, ee_pos = g["series/ee_t"][()], g["series/ee_pos"][()]  # read once for every check below
     fig.update(_sync(g, t, ee_t))
     fig.update(_motion(ee_t, ee_pos, duration, limits))
-    crossings = gripper_crossings(fr["gripper"][()])
+    grip = fr["gripper"][()]
+    crossings = gripper_crossings(grip)
     fig["gripper_events"] = None if crossings is None else len(crossings)
     fig["gripper_chatter"] = chatter(t, crossings, limits.chatter_s)
-    fig["gripper_profile"] = gripper_profile(fr["gripper"][()])
+    fig["gripper_profile"] = gripper_profile(grip)
     fig.update(joint_figures(g, json.loads(g.attrs.get("topic_map", "{}") or "{}").get("gripper_joint"), ee_t,
                              ee_pos))
     fig.update(action_figures(g, ee_t, ee_pos))

@@ -20,8 +20,9 @@ import h5py
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from ..camera import distort, read_lens
+from ..camera import distort, maps_outward, read_lens
 from ..geometry import path_at
+from .doctor_signals import best_lag
 
 CLOCK_MAX_LAG_S = 0.5  # lags searched between image motion and end-effector speed
 SAMPLES = 8  # frames read for colour and brightness
@@ -83,8 +84,7 @@ def lens_figures(g: h5py.Group) -> dict:
     dist = distort(rays.T, K, lens)
     r_pin = np.linalg.norm(pin - centre, axis=1)
     far = r_pin > 0.05 * size
-    wider = distort(rays.T * np.array([1.01, 1.01, 1.0]), K, lens)
-    folds = np.linalg.norm(wider - centre, axis=1) <= np.linalg.norm(dist - centre, axis=1)
+    folds = ~maps_outward(rays.T, K, lens, dist)
     out["lens_shift"] = float((np.linalg.norm(dist - pin, axis=1)[far] / r_pin[far]).max()) if far.any() else 0.0
     out["lens_folds"] = bool(folds[far].any())
     return out
@@ -131,13 +131,8 @@ def frame_figures(g: h5py.Group, ee_t: np.ndarray, ee_pos: np.ndarray) -> dict:
     speed_t = (ee_t[1:] + ee_t[:-1]) / 2
     speed = np.linalg.norm(np.diff(ee_pos, axis=0), axis=1) / np.maximum(np.diff(ee_t), 1e-6)
     step = float(np.median(np.diff(t))) / 4
-    for lag in np.arange(-CLOCK_MAX_LAG_S, CLOCK_MAX_LAG_S + 1e-9, step):
-        s = np.interp(mid - lag, speed_t, speed)
-        if s.std() < 1e-9:
-            continue
-        r = float(np.corrcoef(m, s)[0, 1])
-        if out["clock_r"] is None or r > out["clock_r"]:
-            out["clock_lag_s"], out["clock_r"] = float(lag), r
+    out["clock_lag_s"], out["clock_r"] = best_lag(m, lambda lag: np.interp(mid - lag, speed_t, speed),
+                                                  np.arange(-CLOCK_MAX_LAG_S, CLOCK_MAX_LAG_S + 1e-9, step))
     return out
 
 

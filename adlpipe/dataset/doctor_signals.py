@@ -6,6 +6,8 @@ other episodes, so no joint limits or robot model are needed.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import h5py
 import numpy as np
@@ -97,14 +99,25 @@ def command_lag(act_t: np.ndarray, act: np.ndarray, ee_t: np.ndarray, ee_pos: np
     vc = np.linalg.norm(np.diff(path_at(grid, act_t, act[:, :3]), axis=0), axis=1)
     if vc.std() < 1e-9:
         return out
-    for lag in np.arange(-LAG_MAX_S, LAG_MAX_S + 1e-9, LAG_STEP_S):
-        ve = np.linalg.norm(np.diff(path_at(grid + lag, ee_t, ee_pos[:, :3]), axis=0), axis=1)
-        if ve.std() < 1e-9:
-            continue
-        r = float(np.corrcoef(vc, ve)[0, 1])
-        if out["command_r"] is None or r > out["command_r"]:
-            out["command_lag_s"], out["command_r"] = float(lag), r
+    out["command_lag_s"], out["command_r"] = best_lag(
+        vc, lambda lag: np.linalg.norm(np.diff(path_at(grid + lag, ee_t, ee_pos[:, :3]), axis=0), axis=1),
+        np.arange(-LAG_MAX_S, LAG_MAX_S + 1e-9, LAG_STEP_S))
     return out
+
+
+def best_lag(fixed: np.ndarray, lagged: Callable[[float], np.ndarray],
+             lags: np.ndarray) -> tuple[float | None, float | None]:
+    """(the lag whose series `lagged(lag)` correlates best with `fixed`, that correlation); (None, None) when
+    every lagged series is flat. The camera clock's and the command's timing checks."""
+    best: tuple[float | None, float | None] = (None, None)
+    for lag in lags:
+        s = lagged(float(lag))
+        if s.std() < 1e-9:
+            continue
+        r = float(np.corrcoef(fixed, s)[0, 1])
+        if best[1] is None or r > best[1]:
+            best = (float(lag), r)
+    return best
 
 
 def chatter(t: np.ndarray, crossings: list[int] | None, window_s: float) -> int:

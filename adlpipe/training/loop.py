@@ -135,10 +135,10 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
         barrier(ranks)  # the others wait while rank 0 validates and writes
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
             return {"interrupted_at": epoch + 1}
-        done = bool(ranks.main and stop_floor and epoch + 1 >= stop_floor and history[-1]["val_px"] is not None
-                    and converged(history))
-        if all_sum([float(done)], device, ranks)[0] > 0:  # every process stops together
-            break
+        if stop_floor and epoch + 1 >= stop_floor:  # every process gets here alike, and stops together
+            done = ranks.main and history[-1]["val_px"] is not None and converged(history)
+            if all_sum([float(done)], device, ranks)[0] > 0:
+                break
     if not ranks.main:
         return {}
     ran = int(history[-1]["epoch"]) if history else epochs
