@@ -126,19 +126,15 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
             if save_every and (epoch + 1) % save_every == 0:
                 save_atomic(inference_checkpoint(epoch + 1),
                             work / "checkpoints" / f"step_{(epoch + 1) * steps_per_epoch:07d}.pt")
-            if (val_px is not None or test_loss is not None or epoch == start_epoch
-                    or time.time() - saved >= CHECKPOINT_EVERY_S or epoch + 1 == stop_after_epoch):
-                # not every epoch: an epoch of the default is 5 steps, and writing the optimiser's state after
-                # each took a seventh of the run (bench/train_profile.py); a kill loses at most this much
+            if checkpoint_due(test_loss is not None, epoch == start_epoch, time.time() - saved,
+                              epoch + 1 == stop_after_epoch):
                 save_atomic(resumable(policy, ema, opt, sched, epoch + 1, history, cfg, hparams, stats), last)
                 saved = time.time()
         barrier(ranks)  # the others wait while rank 0 validates and writes
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
             return {"interrupted_at": epoch + 1}
-        if stop_floor and epoch + 1 >= stop_floor:  # every process gets here alike, and stops together
-            done = ranks.main and history[-1]["val_px"] is not None and converged(history)
-            if all_sum([float(done)], device, ranks)[0] > 0:
-                break
+        if stop_floor and epoch + 1 >= stop_floor and converged_everywhere(history, device, ranks):
+            break
     if not ranks.main:
         return {}
     ran = int(history[-1]["epoch"]) if history else epochs
@@ -150,6 +146,20 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     write_json_atomic(out / "metrics.json", final)
     write_log(log_csv, history)
     return final
+
+
+def checkpoint_due(validated: bool, first_of_run: bool, since_saved_s: float, stopping: bool) -> bool:
+    """Whether last.pt is written after this epoch: at validations, a run's first epoch, a stop, and at least
+    every CHECKPOINT_EVERY_S. Not every epoch: an epoch of the default is 5 steps, and writing the optimiser's
+    state after each took a seventh of the run (bench/train_profile.py); a kill loses at most this much."""
+    return validated or first_of_run or stopping or since_saved_s >= CHECKPOINT_EVERY_S
+
+
+def converged_everywhere(history: list[dict], device: torch.device, ranks: Ranks) -> bool:
+    """Whether the run has converged by the 2 % rule at this validation (rank 0 judges, it holds the history);
+    every process calls it at the same epoch and gets the same answer, so all stop together."""
+    done = ranks.main and history[-1]["val_px"] is not None and converged(history)
+    return all_sum([float(done)], device, ranks)[0] > 0
 
 
 def check_run(split: dict, split_path: Path, batch_size: int, ranks: Ranks) -> None:
