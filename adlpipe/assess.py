@@ -34,19 +34,19 @@ import numpy as np
 from scipy.stats import spearmanr
 from tqdm import tqdm
 
-from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import SEED, Parser
 from .dataset import schema
 from .dataset.splits import load_split
-from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, read_json_object, run_cli
+from .evaluation.stats import median_interval, rate_cell
 from .offline.assess import Criteria, assess, context
 from .offline.robot import Robot, surface_samples
+from .plumbing.atomic import check_outputs, json_text, write_all_atomic
+from .plumbing.cli import SEED, Parser
+from .plumbing.dvc_outputs import refuse_pipeline_outputs
+from .plumbing.errors import AdlError, read_json_object, run_cli
+from .plumbing.runtime import Placement
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS
 from .policy.inference import predict_episodes
-from .runtime import Placement
-from .stats import median_interval, rate_cell
 
 FORCE_LIMIT_N = 20.0
 

@@ -30,12 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import SEED, Parser, int_range
 from .envs.registry import BENCHMARKS
-from .errors import AdlError, run_cli
 from .evaluation.benchmark_runs import curve_summary, episode_jobs, run_episodes, summary
 from .evaluation.benchmark_tables import compare, plot_curves, score_cell, success_cell, table
+from .plumbing.atomic import check_outputs, json_text, write_all_atomic
+from .plumbing.cli import SEED, Parser, int_range
+from .plumbing.errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS
 from .policy.objectives import DDPM
 

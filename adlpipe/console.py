@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-from .errors import CONSOLE, run_cli
+from .plumbing.errors import CONSOLE, run_cli
 
 STAGES = ("record", "ingest", "split", "train", "evaluate", "replay", "report", "trials", "seeds", "inspect",
           "export", "doctor", "edit", "assess", "benchmark", "results", "serve", "rollout")

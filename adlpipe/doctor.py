@@ -3,7 +3,7 @@
     python -m adlpipe.doctor data/adl.h5 [--json doctor.json] [--png doctor.png] [--episodes NAME ...]
     python -m adlpipe.doctor data/adl.h5 --verify data/bags/          # the dataset against its bags
 
-Per episode (adlpipe/dataset/doctor.py): frame rate and its largest gap; sync residuals of the end-effector tf,
+Per episode (adlpipe/curation/doctor.py): frame rate and its largest gap; sync residuals of the end-effector tf,
 joint states and depth against the camera frames; tf gaps (and gaps bridged at ingest); idle time at the start and
 the end; path length, peak speed and jerk of the end effector; gripper events; repeated (frozen) frames; depth
 holes; and outliers against the task's other episodes (robust z-scores). Prints a summary table per task and one
@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import Parser, float_range
-from .dataset import doctor
-from .errors import AdlError, run_cli
+from .curation import doctor
+from .plumbing.atomic import check_outputs, json_text, write_all_atomic
+from .plumbing.cli import Parser, float_range
+from .plumbing.errors import AdlError, run_cli
 
 FLAG_KINDS = ("frozen camera", "frame gap", "tf glitch", "tf gap", "idle start", "idle end", "sync", "depth holes",
               "joint spike", "joint flatline", "action frozen", "non-finite values", "gripper chatter",
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     outputs = [o for o in (args.json, args.png) if o]
     check_outputs(*outputs)
     if args.verify:
-        from .dataset.verify import verify
+        from .curation.verify import verify
 
         lines, checked, missing = verify(args.data, args.verify, args.config, args.episodes)
         for line in lines:

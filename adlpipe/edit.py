@@ -1,5 +1,5 @@
 """Edit a dataset without ingesting its bags again: drop, merge, rename, re-task. The result is a new index OUT
-beside DATA that shares DATA's episode files (hard links; adlpipe/dataset/edit.py); DATA is never changed.
+beside DATA that shares DATA's episode files (hard links; adlpipe/curation/edit.py); DATA is never changed.
 
     python -m adlpipe.edit data/adl.h5 -o data/clean.h5 --drop-flagged doctor.json      # what doctor flagged
     python -m adlpipe.edit data/adl.h5 -o data/clean.h5 --drop NAME ... --drop-list bad.txt
@@ -16,10 +16,10 @@ import json
 import sys
 from pathlib import Path
 
-from .cli import Parser
-from .dataset.edit import Edits, edit
-from .errors import AdlError, run_cli
-from .lock import exclusive
+from .curation.edit import Edits, edit
+from .plumbing.cli import Parser
+from .plumbing.errors import AdlError, run_cli
+from .plumbing.lock import exclusive
 
 
 def pairs(items: list[str] | None, flag: str) -> dict[str, str]:

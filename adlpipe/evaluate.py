@@ -6,7 +6,7 @@ Both checkpoints of each model are evaluated: "best" (best.pt, the epoch with th
 (model.pt). Per checkpoint, sampler and step count: mean per-waypoint error in pixels of the stored image (its size
 is stated; px224 is that figure rescaled by 224 / size, the paper's input size, not a measurement on 224 px images)
 and centimetres (3D), per task and overall, each overall mean with its 95 % bootstrap interval over the test
-episodes (adlpipe.stats) and the per-episode errors kept for paired comparisons;
+episodes (adlpipe.evaluation.stats) and the per-episode errors kept for paired comparisons;
 best-of-K error over K samples (how well the samples cover the demonstrated mode); mode commitment on the
 two-mode tasks (the share of the K samples that lie nearer one of the scene's two demonstrated modes than their
 average; both modes are rebuilt in the simulator from the stored scene, adlpipe.sim.modes); inference milliseconds
@@ -23,18 +23,18 @@ from pathlib import Path
 
 import torch
 
-from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, int_range
 from .dataset import schema
 from .dataset.splits import load_split
-from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, run_cli
 from .evaluation.accuracy import blind_rows, evaluate_models, reference_modes
 from .evaluation.accuracy_tables import headline, steps_csv, table1
-from .journal import Journal, fingerprint
+from .plumbing.atomic import check_outputs, json_text, write_all_atomic
+from .plumbing.cli import NON_NEGATIVE, POSITIVE, SEED, Parser, int_range
+from .plumbing.dvc_outputs import refuse_pipeline_outputs
+from .plumbing.errors import AdlError, run_cli
+from .plumbing.journal import Journal, fingerprint
+from .plumbing.runtime import Placement, add_device_args
 from .policy.blind import BLIND
 from .policy.checkpoint import CHECKPOINTS
-from .runtime import Placement, add_device_args
 
 STEPS = [1, 2, 4, 8, 16]
 

@@ -2,8 +2,8 @@
 
     python -m adlpipe.export --format lerobot data/adl.h5 exports/adl_lerobot [--episodes NAME ...] [--split-part train]
 
-Layout and columns: adlpipe/dataset/lerobot.py. Every frame of every episode (or of the named ones, or of one part of
-the split), one episode in memory at a time. The export is written into a hidden folder beside OUT and renamed
+Layout and columns: adlpipe/interchange/lerobot.py. Every frame of every episode (or of the named ones, or of one part
+of the split), one episode in memory at a time. The export is written into a hidden folder beside OUT and renamed
 into place when complete: an interrupted export leaves nothing at OUT. Read it with LeRobot:
 LeRobotDataset("adl", root="exports/adl_lerobot").
 """
@@ -16,12 +16,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .cli import Parser
 from .dataset import schema
-from .dataset.lerobot import Export, plan
 from .dataset.splits import load_split
-from .errors import AdlError, check_interrupted, note_committed, run_cli
-from .lock import exclusive
+from .interchange.lerobot import Export, plan
+from .plumbing.cli import Parser
+from .plumbing.errors import AdlError, check_interrupted, note_committed, run_cli
+from .plumbing.lock import exclusive
 
 
 def export_lerobot(data: Path, out: Path, names: list[str] | None = None, progress: bool = False,

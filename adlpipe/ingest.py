@@ -37,19 +37,19 @@ from pathlib import Path
 import h5py
 from tqdm import tqdm
 
-from .atomic import check_outputs
 from .bags.segments import find_segments
 from .bags.splits import recording_parts, recordings
 from .bags.survey import list_lines, suggest_config, survey
 from .bags.topics import TopicMap
-from .cli import Parser, int_range
 from .dataset import schema, shards
 from .dataset.frames import FrameWriter
 from .dataset.from_bag import extract_episode, sha256_of
-from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, one_line, run_cli
-from .lock import exclusive
-from .workers import stoppable_pool
+from .plumbing.atomic import check_outputs
+from .plumbing.cli import Parser, int_range
+from .plumbing.dvc_outputs import refuse_pipeline_outputs
+from .plumbing.errors import AdlError, one_line, run_cli
+from .plumbing.lock import exclusive
+from .plumbing.workers import stoppable_pool
 
 
 def check_bag_path(bag: Path) -> None:

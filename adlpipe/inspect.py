@@ -8,7 +8,7 @@
 --dataset: every frame of every episode (or of those named; indices count all episodes in catalog order), one
 after another on the `dataset_time` timeline: the camera image with the affordance overlay and the projected end
 effector, the end-effector path and the camera frustum in 3D, the joints and gripper as time series
-(adlpipe/dataset/viewer.py). With --bag, one episode beside the bag it came from, on one timeline: the bag's
+(adlpipe/interchange/viewer.py). With --bag, one episode beside the bag it came from, on one timeline: the bag's
 images as recorded, its joint states and its tf end-effector path next to what ingest stored.
 
 Per episode (timeline `episode`): the RGB image with the affordance map as a colour-mapped overlay, the ground-truth
@@ -27,22 +27,23 @@ import rerun as rr
 import rerun.blueprint as rrb
 import torch
 
-from .atomic import atomic_path, check_outputs
-from .cli import SEED, Parser, int_range
-from .dataset import schema, viewer
+from .dataset import schema
 from .dataset.loader import Normalizer, observation
 from .dataset.splits import load_split
-from .dataset.viewer import (
+from .evaluation.outcomes import outcome_text
+from .interchange import viewer
+from .interchange.viewer import (
     affordance_overlay,
     close_recording,
     write_bag_beside_episode,
     write_dataset_recording,
 )
-from .errors import AdlError, read_json_object, run_cli
-from .evaluation.outcomes import outcome_text
+from .plumbing.atomic import atomic_path, check_outputs
+from .plumbing.cli import SEED, Parser, int_range
+from .plumbing.errors import AdlError, read_json_object, run_cli
+from .plumbing.runtime import Placement, add_device_args
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import predict
-from .runtime import Placement, add_device_args
 
 GT_COLOR = [40, 200, 40]
 PRED_COLOR = [230, 60, 40]

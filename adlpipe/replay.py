@@ -55,12 +55,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import POSITIVE, SEED, Parser, float_range, int_range, read_token_file
 from .dataset import schema
 from .dataset.splits import load_split
-from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, read_json_object, run_cli
 from .evaluation.decision import Rule, decide_replay
 from .evaluation.jobs import run_jobs, success_summary
 from .evaluation.outcomes import failure_sections, failure_strips, success_table
@@ -79,12 +75,16 @@ from .evaluation.replay import (
 )
 from .evaluation.scenes import STILL_DEMO, ReplayScene, fresh_scene, from_episode
 from .evaluation.tables import FIXED
-from .journal import Journal, Section, fingerprint
+from .plumbing.atomic import check_outputs, json_text, write_all_atomic
+from .plumbing.cli import POSITIVE, SEED, Parser, float_range, int_range, read_token_file
+from .plumbing.dvc_outputs import refuse_pipeline_outputs
+from .plumbing.errors import AdlError, read_json_object, run_cli
+from .plumbing.journal import Journal, Section, fingerprint
+from .plumbing.runtime import Placement, add_device_args
+from .plumbing.workers import stoppable_pool
 from .policy.blind import BLIND, blind_predictions, task_means
 from .policy.checkpoint import CHECKPOINTS, load_policy
 from .policy.inference import label_of, predict_episodes, predict_scenes, steps_for
-from .runtime import Placement, add_device_args
-from .workers import stoppable_pool
 
 MAX_SCENES = 1000  # per task: 10,000 scenes' first frames, about 2 GB, fit a laptop; 1e9 were killed at 22 GB
 

@@ -22,10 +22,6 @@ import os
 import sys
 from pathlib import Path
 
-from .atomic import check_outputs, write_all_atomic
-from .cli import Parser, float_range
-from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import UNDERTRAINED_RATIO, claims, convergence_lines
 from .evaluation.decision import Rule, decide_replay
 from .evaluation.figures import figures
@@ -34,6 +30,10 @@ from .evaluation.person import moving_person_lines
 from .evaluation.sections import closed_loop_lines, grasp_tasks, headline_lines, mode_lines, summary_files
 from .evaluation.tables import blind_lines, default_row, per_task_lines
 from .evaluation.training_log import read_training_log
+from .plumbing.atomic import check_outputs, write_all_atomic
+from .plumbing.cli import Parser, float_range
+from .plumbing.dvc_outputs import refuse_pipeline_outputs
+from .plumbing.errors import AdlError, read_json_object, run_cli
 
 
 def _load(path: Path) -> dict:

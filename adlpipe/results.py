@@ -21,9 +21,6 @@ import shutil
 import sys
 from pathlib import Path
 
-from .atomic import atomic_path, write_text_atomic
-from .cli import Parser
-from .errors import AdlError, read_json_object, run_cli
 from .evaluation.claims import claims
 from .evaluation.dagger import ARMS as DAGGER_ARMS
 from .evaluation.dagger import dagger_lines, fit_lines, merged
@@ -32,9 +29,12 @@ from .evaluation.outcomes import breakdown_lines
 from .evaluation.person import motion_training_lines, moving_person_lines
 from .evaluation.recoveries import OPEN_LOOP_OF, recording_line, recoveries_lines
 from .evaluation.sections import grasp_tasks
+from .evaluation.stats import rate_cell
 from .evaluation.table2 import table2_lines
 from .evaluation.tables import FIXED, blind_lines, error_cell, per_task_lines, rate_of, seeds_lines
-from .stats import rate_cell
+from .plumbing.atomic import atomic_path, write_text_atomic
+from .plumbing.cli import Parser
+from .plumbing.errors import AdlError, read_json_object, run_cli
 
 RUN_FILES = ("eval_details.json", "replay_details.json", "replay_closed_loop_details.json")  # the last optional
 

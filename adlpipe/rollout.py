@@ -16,9 +16,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .cli import SEED, Parser, float_range, int_range
-from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, run_cli
+from .plumbing.cli import SEED, Parser, float_range, int_range
+from .plumbing.dvc_outputs import refuse_pipeline_outputs
+from .plumbing.errors import AdlError, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:

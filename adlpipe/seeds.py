@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import Parser
-from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, read_json_object, run_cli
+from .evaluation.stats import paired_difference
 from .evaluation.tables import default_row, replay_label, seeds_lines
-from .stats import paired_difference
+from .plumbing.atomic import check_outputs, json_text, write_all_atomic
+from .plumbing.cli import Parser
+from .plumbing.dvc_outputs import refuse_pipeline_outputs
+from .plumbing.errors import AdlError, read_json_object, run_cli
 
 # (claim, first model, its row, second model, its row, scale): "first's px below scale x second's"
 CLAIMS = (

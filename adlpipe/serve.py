@@ -17,8 +17,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .cli import Parser, int_range, read_token_file
-from .errors import AdlError, run_cli
+from .plumbing.cli import Parser, int_range, read_token_file
+from .plumbing.errors import AdlError, run_cli
 
 
 def task_speeds(data: Path, split: Path | None) -> dict[str, float]:

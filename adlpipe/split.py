@@ -16,12 +16,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .atomic import check_outputs, write_json_atomic
-from .cli import SEED, Parser, float_range
 from .dataset import schema
 from .dataset.splits import make_split, recording_keys
-from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, run_cli
+from .plumbing.atomic import check_outputs, write_json_atomic
+from .plumbing.cli import SEED, Parser, float_range
+from .plumbing.dvc_outputs import refuse_pipeline_outputs
+from .plumbing.errors import AdlError, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:

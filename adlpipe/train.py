@@ -39,16 +39,16 @@ from pathlib import Path
 
 import torch
 
-from .cli import NON_NEGATIVE, POSITIVE, SEED, Parser, float_range, int_range
 from .dataset import schema
 from .dataset.loader import OPEN_FILES, STATE_DIM
-from .dvc_outputs import refuse_pipeline_outputs
-from .errors import AdlError, run_cli
-from .lock import exclusive
+from .plumbing.cli import NON_NEGATIVE, POSITIVE, SEED, Parser, float_range, int_range
+from .plumbing.dvc_outputs import refuse_pipeline_outputs
+from .plumbing.errors import AdlError, run_cli
+from .plumbing.lock import exclusive
+from .plumbing.runtime import add_device_args, barrier, process_group, resolve_device
 from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, preset
 from .policy.nets.resnet import POOLS
 from .policy.optim import WARMUP_STEPS
-from .runtime import add_device_args, barrier, process_group, resolve_device
 from .training.data import stream_sizes
 from .training.loop import check_resume_dir, train
 

@@ -21,11 +21,11 @@ import math
 import sys
 from pathlib import Path
 
-from .atomic import check_outputs, json_text, write_all_atomic
-from .cli import Parser, float_range
-from .errors import AdlError, read_json_object, run_cli
 from .evaluation.decision import Rule, policies_of
 from .evaluation.trials import TrialSeries, read_trials
+from .plumbing.atomic import check_outputs, json_text, write_all_atomic
+from .plumbing.cli import Parser, float_range
+from .plumbing.errors import AdlError, read_json_object, run_cli
 
 
 def latencies(args: argparse.Namespace) -> dict[str, float | None]:

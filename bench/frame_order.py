@@ -16,9 +16,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from adlpipe.curation.doctor import Limits
+from adlpipe.curation.doctor_checks import frame_order
 from adlpipe.dataset import schema
-from adlpipe.dataset.doctor import Limits
-from adlpipe.dataset.doctor_checks import frame_order
 
 
 def main() -> None:

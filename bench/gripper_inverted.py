@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from adlpipe.dataset.doctor import Limits, examine
-from adlpipe.dataset.doctor_checks import by_task
+from adlpipe.curation.doctor import Limits, examine
+from adlpipe.curation.doctor_checks import by_task
 
 
 def main() -> None:

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import torch
 
-from adlpipe.cli import Parser
+from adlpipe.plumbing.cli import Parser
+from adlpipe.plumbing.runtime import Placement, add_device_args
 from adlpipe.policy.checkpoint import load_policy
 from adlpipe.policy.inference import interleaved_latency_ms
 from adlpipe.policy.models import Policy, preset
-from adlpipe.runtime import Placement, add_device_args
 
 STEPS = [1, 2, 4, 8, 16]
 

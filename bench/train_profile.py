@@ -34,9 +34,9 @@ def profile(data: Path, split: Path, model: str, threads: int, epochs: int, val_
     from adlpipe.dataset.loader import Augment, Normalizer
     from adlpipe.dataset.sampling import EpochSampler, TrainingSamples
     from adlpipe.dataset.splits import load_split
+    from adlpipe.plumbing.runtime import Ranks
     from adlpipe.policy.checkpoint import save_atomic
     from adlpipe.policy.objectives import Noise
-    from adlpipe.runtime import Ranks
     from adlpipe.train import model_config, parse_args
     from adlpipe.training.data import datasets, training_batches, training_episodes
     from adlpipe.training.loop import optimisation, resumable

@@ -21,7 +21,7 @@ import numpy as np
 from fuzzing import MUTATIONS, mutate
 
 from adlpipe.dataset import schema
-from adlpipe.errors import run_cli
+from adlpipe.plumbing.errors import run_cli
 
 # Each changes one thing a reader trusts: the index's or an episode file's bytes, a catalog row, an episode link,
 # a dataset's presence, shape, type or values, an attribute, or an episode file's existence.

@@ -17,8 +17,8 @@ import numpy as np
 
 from adlpipe.bags.topics import TopicMap
 from adlpipe.dataset import schema
-from adlpipe.errors import AdlError
 from adlpipe.ingest import ingest
+from adlpipe.plumbing.errors import AdlError
 
 MUTATIONS = ["truncate", "flip", "length", "zero", "duplicate", "splice"]
 # Structure-aware mutations: they change what a parser trusts (schema text, summary counts, declared lengths,

@@ -17,7 +17,7 @@ from rosbags.typesys import get_types_from_msg
 from adlpipe.bags import messages as M
 from adlpipe.bags.images import encode_compressed_depth
 from adlpipe.bags.writer import BagWriter
-from adlpipe.geometry import matrix_to_quat, pose_matrix
+from adlpipe.geometry.transforms import matrix_to_quat, pose_matrix
 
 CAMERAS = {  # driver topic names
     "azure_kinect": dict(image="/rgb/image_raw", camera_info="/rgb/camera_info", depth="/depth_to_rgb/image_raw",

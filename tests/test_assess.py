@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from conftest import run_module
 
-from adlpipe.camera import Lens, project
 from adlpipe.dataset import schema
+from adlpipe.geometry.camera import Lens, project
 from adlpipe.offline.assess import Criteria, assess, context
 from adlpipe.offline.robot import Robot, Tolerances, surface_samples
 from adlpipe.offline.scene import DepthScene, back_project
@@ -91,7 +91,7 @@ def test_the_stage_validates_its_verdicts_against_replay(ingested: Path, tmp_pat
 
 
 def test_a_labs_robot_model_from_a_file_and_a_wrong_site_is_one_line(tmp_path: Path) -> None:
-    from adlpipe.errors import AdlError
+    from adlpipe.plumbing.errors import AdlError
 
     xml = tmp_path / "arm.xml"
     xml.write_text(arm_mjcf())

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from conftest import REPO, copy_dataset, one_line_error, run_module
 
-from adlpipe.errors import run_cli
+from adlpipe.plumbing.errors import run_cli
 from adlpipe.policy.models import ModelConfig
 from adlpipe.training.loop import train
 
@@ -243,8 +243,8 @@ def test_a_state_message_left_out_for_nan_is_not_stored_as_nan(tmp_path: Path) -
     """A state topic whose message at the first frame held NaN (and was left out) leaves that frame without a
     state: the ingest says so in one line, naming the frame and why, instead of storing NaN (it did before)."""
     from adlpipe.bags.topics import TopicMap
-    from adlpipe.record import write_episode_bag
     from adlpipe.sim.episode import record_demo
+    from adlpipe.sim.recording import write_episode_bag
 
     st = record_demo("wipe the nose", np.random.default_rng(0), 32, 32, camera_hz=2.0)
     st.state_names = ["x", "y"]
@@ -292,7 +292,7 @@ def test_an_output_path_that_is_a_folder_keeps_every_old_output(capsys: pytest.C
 def test_training_stops_on_a_non_finite_loss_and_keeps_the_last_good_checkpoint(world: dict, tmp_path: Path) -> None:
     import torch
 
-    from adlpipe.errors import AdlError
+    from adlpipe.plumbing.errors import AdlError
     from adlpipe.policy.checkpoint import load_checkpoint, save_atomic
 
     out = tmp_path / "m"
@@ -339,7 +339,7 @@ def test_a_read_only_output_is_one_line(world: dict, mcap_bags: list[Path], tmp_
 
 def test_a_second_writer_of_one_output_is_refused_while_the_first_holds_it(mcap_bags: list[Path],
                                                                           tmp_path: Path) -> None:
-    from adlpipe.lock import exclusive
+    from adlpipe.plumbing.lock import exclusive
 
     out = tmp_path / "same.h5"
     with exclusive(out):  # as a running ingest would

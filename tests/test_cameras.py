@@ -15,9 +15,9 @@ from layouts import WRIST, Layout, topic_map, wrist_image, wrist_K, wrist_pose, 
 
 from adlpipe.bags.topics import TopicMap
 from adlpipe.dataset import schema
-from adlpipe.errors import AdlError
-from adlpipe.geometry import in_camera, scale_intrinsics
+from adlpipe.geometry.transforms import in_camera, scale_intrinsics
 from adlpipe.ingest import ingest
+from adlpipe.plumbing.errors import AdlError
 
 SIZE = 48
 NAMES = {"mcap": "c.mcap", "bag": "c.bag", "db3": "c"}

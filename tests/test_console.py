@@ -43,7 +43,7 @@ def test_ctrl_c_while_the_console_command_starts_is_one_line(tmp_path: Path, del
 def test_ctrl_c_made_an_import_error_by_an_extension_is_an_interrupt(capsys: pytest.CaptureFixture[str]) -> None:
     """mujoco's pybind11 init turns a Ctrl-C that lands during `import mujoco` into "ImportError: initialization
     failed" (CI, 0.6 s after start): the stage reports the interrupt, and an import error of its own is still raised."""
-    from adlpipe.errors import run_cli
+    from adlpipe.plumbing.errors import run_cli
 
     # a stage's own process starts with Python's handler; an earlier test in this process may have left another
     # (ignored, or a library's C-level one, which run_cli rightly leaves alone: seen once in a full run)

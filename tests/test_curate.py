@@ -16,8 +16,8 @@ from conftest import one_line_error, run_module
 from layouts import Layout, topic_map, write_layout_bag
 
 from adlpipe.bags.topics import TopicMap
+from adlpipe.curation.doctor import Limits, outlier_flags
 from adlpipe.dataset import schema
-from adlpipe.dataset.doctor import Limits, outlier_flags
 from adlpipe.ingest import ingest
 
 CASES = {  # a clean episode, and one of each problem doctor must flag, in the three bag formats
@@ -182,7 +182,7 @@ def test_a_bad_edit_is_one_line_and_writes_nothing(curated: dict, tmp_path: Path
 
 
 def test_a_failed_edit_leaves_no_output(curated: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from adlpipe.dataset import edit as edit_module
+    from adlpipe.curation import edit as edit_module
 
     def broken(*_a: object) -> None:
         raise OSError(28, "No space left on device")

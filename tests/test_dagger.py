@@ -22,8 +22,8 @@ from adlpipe.dataset.loader import (
     expert_reference,
     relative_waypoints,
 )
-from adlpipe.record import EXPERT_PLAN_TOPIC, PLAN_TOPIC
 from adlpipe.sim.dagger import Expert, Operator, OperatorRule
+from adlpipe.sim.recording import EXPERT_PLAN_TOPIC, PLAN_TOPIC
 
 
 def _paths(bag: Path, topic: str) -> list[tuple[float, np.ndarray]]:
@@ -91,7 +91,7 @@ def test_every_replan_of_a_rollout_is_labelled_by_the_expert_as_training_labels_
 
 
 def test_the_expert_leads_a_lagging_arm_on_along_the_path_not_to_where_the_timetable_is(ingested: Path) -> None:
-    from adlpipe.recovery import recovering_plan
+    from adlpipe.geometry.recovery import recovering_plan
 
     with h5py.File(ingested) as f:
         g = f[schema.EPISODES][schema.episode_names(f)[0]]
@@ -155,8 +155,8 @@ def test_the_operators_flag_goes_from_the_bag_to_hdf5_training_windows_and_lerob
 
 def test_a_labs_flag_on_its_own_topic_is_read_through_the_topic_map(tmp_path: Path) -> None:
     from adlpipe.bags.topics import TopicMap
-    from adlpipe.record import write_episode_bag
     from adlpipe.sim.episode import seeded_demo
+    from adlpipe.sim.recording import write_episode_bag
 
     st = seeded_demo("wipe the nose", 0, 0, 64, 5.0)
     st.interventions = [(0.0, False), (1.0, True), (1.6, False)]

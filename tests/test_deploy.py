@@ -25,8 +25,8 @@ from adlpipe.dataset.loader import Normalizer, normalize_state, observation_from
 from adlpipe.deploy import Observation, Planner
 from adlpipe.deploy.client import PolicyClient, ServerError
 from adlpipe.deploy.wire import WireError, dumps, loads, pack_array
+from adlpipe.plumbing.runtime import Placement
 from adlpipe.policy.inference import predict
-from adlpipe.runtime import Placement
 
 
 def start_server(model: Path, root: Path, *extra: str) -> tuple[subprocess.Popen, str]:

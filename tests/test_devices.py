@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from adlpipe.errors import AdlError
+from adlpipe.plumbing.errors import AdlError
+from adlpipe.plumbing.runtime import Placement, resolve_device
 from adlpipe.policy.inference import predict
 from adlpipe.policy.models import ModelConfig, Policy
-from adlpipe.runtime import Placement, resolve_device
 
 TINY = dict(image_size=32, encoder_width=8, obs_dim=16, down_dims=(16, 32, 64), d_model=32, n_layers=1, n_heads=2)
 no_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
@@ -54,7 +54,7 @@ def test_bf16_autocast_predicts_what_fp32_does_to_bf16_precision(model: str) -> 
 
 
 def test_a_bf16_training_step_keeps_fp32_weights_and_gradients() -> None:
-    from adlpipe.runtime import autocast
+    from adlpipe.plumbing.runtime import autocast
 
     policy, obs = _policy("fm_cnn")
     policy.train()

@@ -141,7 +141,7 @@ def test_a_run_stopped_when_converged_is_the_capped_run_cut_at_the_rule(four: tu
     """--stop-when-converged: the run stops at the first validation from the floor on at which the 2 % rule holds
     on its history so far, until then epoch for epoch the capped run (the schedule stays the cap's); two processes
     stop together (rank 0 validates, every process leaves the loop)."""
-    from adlpipe.training.validation import converged
+    from adlpipe.evaluation.training_log import converged
 
     data, split = four
     cfg = preset("small", "fm_cnn", horizon=32)  # what the command line below configures

@@ -192,7 +192,7 @@ def test_an_episode_named_twice_is_exported_once_and_a_second_export_waits_its_t
                                                                                      tmp_path: Path) -> None:
     from conftest import one_line_error, run_module
 
-    from adlpipe.lock import exclusive
+    from adlpipe.plumbing.lock import exclusive
 
     with schema.open_dataset(ingested) as f:
         name = schema.episode_names(f)[0]

@@ -120,7 +120,7 @@ def test_path_at_interpolates_every_axis_and_holds_the_ends() -> None:
     interpolation per axis inside the path, its first and last point outside, any shape of times."""
     from scipy.interpolate import interp1d
 
-    from adlpipe.geometry import path_at
+    from adlpipe.geometry.transforms import path_at
 
     rng = np.random.default_rng(3)
     times, values = np.sort(rng.uniform(0, 5, 40)), rng.normal(size=(40, 3))
@@ -211,7 +211,7 @@ def test_windows_cover_every_frame_with_padding(windows: WindowDataset, ingested
         last = frames["ee_pos"][counts[0] - 1]
         np.testing.assert_allclose(end[-1, 2:] + last, s["ee_pos"][-1], atol=1e-5)  # after the end: the last pose
         np.testing.assert_allclose(end[-1], end[-2], atol=1e-5)
-        from adlpipe.geometry import project
+        from adlpipe.geometry.transforms import project
 
         K, T = g["K"][()], g["T_base_camera"][()]
         np.testing.assert_allclose(target[:, :2], project(target[:, 2:] + now, K, T) - project(now[None], K, T),

@@ -13,10 +13,10 @@ from conftest import copy_dataset, one_line_error, public_bag, run_module
 
 from adlpipe.bags.topics import TopicMap
 from adlpipe.dataset import schema
-from adlpipe.errors import AdlError
 from adlpipe.ingest import ingest
-from adlpipe.record import write_episode_bag
+from adlpipe.plumbing.errors import AdlError
 from adlpipe.sim.episode import record_demo
+from adlpipe.sim.recording import write_episode_bag
 
 
 def _sha(p: Path) -> str:

@@ -12,7 +12,7 @@ import torch
 from conftest import one_line_error, record_seeded_world, run_module
 
 from adlpipe.dataset import schema
-from adlpipe.geometry import project
+from adlpipe.geometry.transforms import project
 
 kitchen = pytest.importorskip("adlpipe.envs.kitchen")
 

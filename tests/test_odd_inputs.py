@@ -45,7 +45,7 @@ def test_gather_with_nothing_to_gather_says_so(tmp_path: Path) -> None:
 INTERRUPTS = """
 import json, random, signal, sys
 from adlpipe.dataset import schema
-from adlpipe.errors import AdlError
+from adlpipe.plumbing.errors import AdlError
 
 data = sys.argv[1]
 signal.signal(signal.SIGALRM, signal.default_int_handler)
@@ -173,8 +173,8 @@ def test_a_ctrl_c_swallowed_by_a_finaliser_still_stops_the_stage_before_it_commi
     import weakref
     from contextlib import redirect_stderr
 
-    from adlpipe.atomic import write_text_atomic
-    from adlpipe.errors import run_cli
+    from adlpipe.plumbing.atomic import write_text_atomic
+    from adlpipe.plumbing.errors import run_cli
 
     out = tmp_path / "out.txt"
     out.write_text("old")

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from conftest import copy_dataset, one_line_error, run_module
 
-from adlpipe.errors import run_cli
+from adlpipe.plumbing.errors import run_cli
 
 
 class Proc:

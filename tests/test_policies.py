@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from adlpipe.dataset.splits import make_split
-from adlpipe.errors import AdlError
+from adlpipe.plumbing.errors import AdlError
 from adlpipe.policy.checkpoint import load_checkpoint, load_policy
 from adlpipe.policy.models import MODELS, ModelConfig, Policy
 from adlpipe.policy.objectives import DDPM, FlowMatching, Noise, interpolate, squaredcos_cap_v2, velocity_from_x1
@@ -417,8 +417,8 @@ def test_a_scene_plans_the_same_in_any_batch_of_scenes(ingested: Path, split_fil
     import h5py
     import numpy as np
 
+    from adlpipe.plumbing.runtime import Placement
     from adlpipe.policy.inference import predict_scenes
-    from adlpipe.runtime import Placement
 
     for model in ("dp_cnn", "fm_cnn"):
         train(ingested, split_file, tmp_path / model, ModelConfig(model=model, **TINY), epochs=1, batch_size=2,

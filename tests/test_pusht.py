@@ -12,7 +12,7 @@ import pytest
 from conftest import one_line_error, record_seeded_world, run_module
 
 from adlpipe.dataset import schema
-from adlpipe.geometry import project
+from adlpipe.geometry.transforms import project
 
 
 def test_the_demonstrator_pushes_the_t_onto_the_goal(pusht_data: Path) -> None:

@@ -16,8 +16,8 @@ from layouts import Layout, topic_map, write_layout_bag
 
 from adlpipe.bags.topics import TopicMap
 from adlpipe.dataset import schema
-from adlpipe.errors import AdlError
 from adlpipe.ingest import ingest
+from adlpipe.plumbing.errors import AdlError
 
 PRESETS = REPO / "pipelines" / "presets"
 

@@ -15,7 +15,7 @@ from conftest import one_line_error, run_module
 from adlpipe.dataset import schema
 from adlpipe.dataset.loader import WindowDataset, Windows, command_series, compute_window_stats, reference_series
 from adlpipe.evaluation.recoveries import recording_disturbances, recording_line
-from adlpipe.recovery import RETURN_S, recovering_plan
+from adlpipe.geometry.recovery import RETURN_S, recovering_plan
 from adlpipe.sim.disturbances import Disturbance, disturbed_path, draw_disturbances
 
 TASK = "put on the hat"  # the longest demonstration (5.6 s): room for several disturbances

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from conftest import REPO, one_line_error, run_module
 
-from adlpipe.errors import AdlError
 from adlpipe.evaluation.table2 import table2_lines
+from adlpipe.plumbing.errors import AdlError
 from adlpipe.results import save_closed_loop
 
 

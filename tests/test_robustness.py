@@ -22,11 +22,11 @@ from fuzzing import MUTATIONS, run_case
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from adlpipe.atomic import atomic_path, write_json_atomic
 from adlpipe.bags.images import decode_compressed, decode_raw
 from adlpipe.dataset import schema
-from adlpipe.errors import AdlError
 from adlpipe.ingest import sha256_of
+from adlpipe.plumbing.atomic import atomic_path, write_json_atomic
+from adlpipe.plumbing.errors import AdlError
 
 
 @pytest.fixture(scope="module")
@@ -178,8 +178,8 @@ def test_image_size_claims_are_checked_before_allocation() -> None:
 def test_hostile_task_names_become_safe_hdf5_names(tmp_path: Path) -> None:
     from adlpipe.bags.topics import TopicMap
     from adlpipe.ingest import ingest
-    from adlpipe.record import write_episode_bag
     from adlpipe.sim.episode import record_demo
+    from adlpipe.sim.recording import write_episode_bag
 
     st_ = record_demo("wipe the nose", np.random.default_rng(0), 32, 32, camera_hz=2)
     st_.task = "../../etc/passwd/evil"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from adlpipe.stats import paired_success, rate_cell, success_interval
+from adlpipe.evaluation.stats import paired_success, rate_cell, success_interval
 
 
 def test_wilson_interval_of_a_success_rate() -> None:
@@ -33,7 +33,7 @@ def test_bootstrap_interval_of_a_mean() -> None:
     and collapses to the value when nothing varies."""
     import numpy as np
 
-    from adlpipe.stats import mean_cell, mean_interval
+    from adlpipe.evaluation.stats import mean_cell, mean_interval
 
     x = np.random.default_rng(4).normal(2.0, 1.0, 400)
     lo, hi = mean_interval(x)
@@ -49,7 +49,7 @@ def test_median_interval_of_repeated_timings() -> None:
     collapses when every run took the same time."""
     import numpy as np
 
-    from adlpipe.stats import median_interval
+    from adlpipe.evaluation.stats import median_interval
 
     rng = np.random.default_rng(1)
     few, many = rng.gamma(20, 0.5, 10), rng.gamma(20, 0.5, 400)  # ~10 ms with a right tail, as timings have
@@ -66,7 +66,7 @@ def test_ratio_interval_resamples_clusters() -> None:
     and it collapses when every scene has the same share."""
     import numpy as np
 
-    from adlpipe.stats import ratio_interval
+    from adlpipe.evaluation.stats import ratio_interval
 
     den = np.full(40, 8.0)  # 40 scenes, 8 committed samples each
     num = np.where(np.arange(40) < 20, 8.0, 0.0)  # half the scenes all to the demonstrated mode, half none
@@ -100,7 +100,7 @@ def test_report_figures_tell_every_series_apart_and_label_the_steps() -> None:
 
 
 def test_paired_difference_verdicts() -> None:
-    from adlpipe.stats import paired_difference
+    from adlpipe.evaluation.stats import paired_difference
 
     a, b = [1.0, 2.0, 3.0, 4.0] * 10, [1.2, 2.2, 3.1, 4.3] * 10
     assert paired_difference(a, b).verdict() == "supported" and paired_difference(b, a).verdict() == "contradicted"
@@ -162,7 +162,7 @@ def test_seeds_summary_spread_and_claims_over_seeds() -> None:
 
 
 def test_seeds_refuse_different_test_splits() -> None:
-    from adlpipe.errors import AdlError
+    from adlpipe.plumbing.errors import AdlError
     from adlpipe.seeds import summarise
 
     a = _details({"fm_cnn": [1.0, 2.0]}, {"fm_cnn": [True, False]}, True)
@@ -186,7 +186,7 @@ def test_where_closed_loop_rollouts_fail_carries_intervals() -> None:
 
 
 def test_mcnemar_verdict_and_the_scenes_that_would_resolve_it() -> None:
-    from adlpipe.stats import paired_success, scenes_to_resolve
+    from adlpipe.evaluation.stats import paired_success, scenes_to_resolve
 
     better = paired_success([1] * 12 + [0] * 2 + [1] * 10 + [0] * 16, [0] * 12 + [1] * 2 + [1] * 10 + [0] * 16)
     assert (better.only_first, better.only_second, better.n) == (12, 2, 40) and better.p_value < 0.05

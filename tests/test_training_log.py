@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from adlpipe.errors import AdlError
 from adlpipe.evaluation.training_log import read_training_log, validated_rows
+from adlpipe.plumbing.errors import AdlError
 
 LOG = """epoch,step,train_loss,test_loss,val_px,lr,seconds
 1,100,0.5,,,0.001,1.0

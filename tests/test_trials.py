@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from adlpipe.bags import messages as M
-from adlpipe.record import write_episode_bag
+from adlpipe.sim.recording import write_episode_bag
 from tests.conftest import one_line_error, run_module
 
 

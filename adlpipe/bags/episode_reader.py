@@ -15,8 +15,8 @@ from typing import Protocol
 
 import numpy as np
 
-from ..errors import AdlError
-from ..geometry import TfBuffer, pose_matrix
+from ..geometry.transforms import TfBuffer, pose_matrix
+from ..plumbing.errors import AdlError
 from .foxglove import AS_ROS
 from .images import DEPTH_TYPES, as_rgb8, decode_depth, decode_image
 from .reader import BagSource, TopicInfo

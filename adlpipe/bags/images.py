@@ -10,7 +10,7 @@ from collections.abc import Iterator
 import cv2
 import numpy as np
 
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
 
 MAX_PIXELS = 8192 * 8192  # larger claims are rejected, never allocated
 

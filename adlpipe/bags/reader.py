@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
-from ..errors import AdlError, NoDecoder
+from ..plumbing.errors import AdlError, NoDecoder
 from .foxglove import AS_ROS, JsonDecoderFactory, SafeFactory, as_ros
 from .messages import typestore
 from .splits import recording_parts

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import AdlError, read_small_yaml
-from ..geometry import TfBuffer, pose_matrix
+from ..geometry.transforms import TfBuffer, pose_matrix
+from ..plumbing.errors import AdlError, read_small_yaml
 from .episode_reader import stamp_s
 from .reader import BagSource
 from .topics import TopicMap

@@ -13,7 +13,7 @@ import re
 from functools import lru_cache
 from pathlib import Path
 
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
 
 PART = re.compile(r"^(?P<prefix>.+)_(?P<index>\d+)\.bag$")
 SPLIT_GAP_S = 1.0  # the longest pause between one part's last message and the next part's first

@@ -8,7 +8,7 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import NoDecoder
+from ..plumbing.errors import NoDecoder
 from .episode_reader import stamp_s
 from .reader import BagSource
 from .splits import split_note

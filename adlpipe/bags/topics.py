@@ -7,8 +7,10 @@ import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-from ..errors import AdlError, read_small_yaml
+from ..plumbing.errors import AdlError, read_small_yaml
 
+# A trial bag's own topics (adlpipe.deploy.trial_bags writes them, adlpipe.evaluation.trials reads them)
+OUTCOME, POLICY = "/adl/outcome", "/adl/policy"
 UNFILLED = "FILL_ME"  # what ingest --suggest-config writes where it found no topic or frame
 
 

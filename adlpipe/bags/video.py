@@ -17,7 +17,7 @@ from collections import deque
 
 import numpy as np
 
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
 from .images import as_bytes
 
 VIDEO_TYPES = {"foxglove_msgs/msg/CompressedVideo", "ffmpeg_image_transport_msgs/msg/FFMPEGPacket"}

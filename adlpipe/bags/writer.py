@@ -12,7 +12,7 @@ from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Ros2Writer
 
-from ..atomic import temp_name
+from ..plumbing.atomic import temp_name
 from .messages import MessageFactory
 
 FORMATS = {"mcap": ".mcap", "bag": ".bag", "db3": ""}  # db3: a rosbag2 folder holding <name>.db3 + metadata.yaml

@@ -36,7 +36,7 @@ import cv2
 import h5py
 import numpy as np
 
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
 
 FRAMES = "frames"
 CAMERAS = "cameras"  # an episode's other cameras: cameras/<name>/frames/{t, rgb, T_base_camera, index, depth...}

@@ -17,9 +17,9 @@ from ..bags.images import decode_depth, decode_image
 from ..bags.reader import BagSource
 from ..bags.splits import recording_parts, split_note
 from ..bags.topics import CameraTopics, TopicMap
-from ..camera import Lens, lens_from_info, project
-from ..errors import AdlError
-from ..geometry import matrix_to_quat, resample, scale_intrinsics
+from ..geometry.camera import Lens, lens_from_info, project
+from ..geometry.transforms import matrix_to_quat, resample, scale_intrinsics
+from ..plumbing.errors import AdlError
 from . import schema
 from .frames import FrameWriter
 

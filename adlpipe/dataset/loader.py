@@ -17,10 +17,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from ..camera import PINHOLE, Lens, project, read_lens
-from ..errors import AdlError
-from ..geometry import path_at
-from ..recovery import recovering_plan
+from ..geometry.camera import PINHOLE, Lens, project, read_lens
+from ..geometry.recovery import recovering_plan
+from ..geometry.transforms import path_at
+from ..plumbing.errors import AdlError
 from . import schema
 from .frames import metres_from_mm
 
@@ -82,8 +82,8 @@ def relative_waypoints(t_now: np.ndarray, now: np.ndarray, series_t: np.ndarray,
     t_now + horizon/rate, the last one held after the end, relative to `now` (F, 3): pixels (u, v) from its
     projection through the camera's lens, metres (x, y, z). The closed-loop policies' target format. reference
     (stamps, positions) of a disturbed demonstrator's own path: instead of the series, the plan it would follow
-    back onto that path from `now` (adlpipe.recovery); with (phase stamps, phases) after them (a labelled rollout's,
-    adlpipe.sim.dagger), from the phase of the path reached at each frame instead of the frame's time."""
+    back onto that path from `now` (adlpipe.geometry.recovery); with (phase stamps, phases) after them (a labelled
+    rollout's, adlpipe.sim.dagger), from the phase of the path reached at each frame instead of the frame's time."""
     ahead = np.arange(1, horizon + 1)[None] / rate_hz
     future = np.asarray(t_now, float)[:, None] + ahead
     if reference is not None:

@@ -43,8 +43,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..camera import PINHOLE, Lens, read_lens
-from ..errors import AdlError, one_line
+from ..geometry.camera import PINHOLE, Lens, read_lens
+from ..plumbing.errors import AdlError, one_line
 from .frames import CAMERAS, check_camera_frames, check_frames
 
 FORMAT_VERSION = 2  # 2: every frame, sharded; 1: the first frame only, one file

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import h5py
 
-from ..atomic import atomic_path
-from ..errors import AdlError, check_interrupted, note_committed
-from ..lock import remove_if_unlocked
+from ..plumbing.atomic import atomic_path
+from ..plumbing.errors import AdlError, check_interrupted, note_committed
+from ..plumbing.lock import remove_if_unlocked
 from . import schema
 
 shards_dir = schema.shards_root  # adl.h5 -> adl.shards beside it

@@ -10,7 +10,7 @@ from pathlib import Path, PurePath
 import h5py
 import numpy as np
 
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
 from . import schema
 
 

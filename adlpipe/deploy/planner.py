@@ -20,10 +20,10 @@ import numpy as np
 import torch
 
 from ..dataset.loader import STATE_DIM, Normalizer, normalize_state, observation_from_arrays
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
+from ..plumbing.runtime import Placement, resolve_device, synchronize, to_device
 from ..policy.checkpoint import CHECKPOINTS, load_policy
 from ..policy.models import Policy
-from ..runtime import Placement, resolve_device, synchronize, to_device
 from .wire import MAX_SIDE, WireError
 
 

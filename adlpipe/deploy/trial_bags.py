@@ -9,7 +9,7 @@ import re
 from pathlib import Path
 
 from ..bags import messages as M
-from ..evaluation.trials import OUTCOME, POLICY
+from ..bags.topics import OUTCOME, POLICY
 
 
 def trial_bag_path(out: Path, index: int, policy: str, scene: str) -> Path:
@@ -21,7 +21,7 @@ def write_trial_bag(st: object, out: Path, policy: str, scene: str, index: int, 
                     force_n: float) -> Path:
     """Write the rollout `st` (adlpipe.sim.episode.Streams, filled by the closed-loop executor) as trial `index`:
     its clock starts index * 100 s after the recorder's base time, so the trials are read in this order."""
-    from ..record import write_episode_bag
+    from ..sim.recording import write_episode_bag
 
     out.mkdir(parents=True, exist_ok=True)
     doc = json.dumps({"policy": policy, "success": bool(success), "force_n": round(float(force_n), 3)})

@@ -31,7 +31,7 @@ from functools import cache
 
 import numpy as np
 
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
 
 ENV_ID = "FrankaKitchen-v1"
 TASKS = ("microwave", "kettle", "light switch", "slide cabinet")  # the seed's (and D4RL's kitchen-complete) order
@@ -360,7 +360,7 @@ def record(seed: int, size: int = 64) -> object:
     """One demonstration from initial condition `seed` as sensor streams (adlpipe.sim.episode.Streams): the rendered
     image, the robot's 9 joints, the end-effector site as tf, the kettle's pose, the 59-D observation as the state
     and the 9-D joint-velocity action, all at the control rate. success: all four tasks done."""
-    from ..geometry import matrix_to_quat
+    from ..geometry.transforms import matrix_to_quat
     from ..sim.episode import Streams
     from ..sim.world import SceneSpec
 

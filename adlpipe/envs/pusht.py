@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
 
 ENV_ID = "gym_pusht/PushT-v0"
 MAX_STEPS = 300  # gym-pusht's episode limit (30 s at 10 Hz), for demonstrations and policies alike

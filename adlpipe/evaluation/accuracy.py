@@ -13,18 +13,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..camera import project
 from ..dataset import schema
 from ..dataset.loader import Normalizer, TrajectoryDataset, check_cameras
-from ..errors import AdlError
-from ..journal import Journal
+from ..geometry.camera import project
+from ..plumbing.errors import AdlError
+from ..plumbing.journal import Journal
+from ..plumbing.runtime import Placement
 from ..policy.blind import BLIND, blind_predictions, task_means
 from ..policy.checkpoint import CHECKPOINTS, load_policy
 from ..policy.inference import latency_samples_ms, predict
 from ..policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
-from ..runtime import Placement
-from ..stats import mean_interval, median_interval, ratio_interval
 from .metrics import commitment, waypoint_errors
+from .stats import mean_interval, median_interval, ratio_interval
 
 DEFAULTS = {name: f"{DEFAULT_METHOD[kind]}/{DEFAULT_STEPS[kind]}" for name, (kind, _net) in MODELS.items()}
 PAPER_IMAGE_PX = 224

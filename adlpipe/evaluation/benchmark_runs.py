@@ -15,11 +15,11 @@ import torch
 
 from ..dataset.loader import Normalizer, normalize_state, observation_from_arrays
 from ..envs.registry import BENCHMARKS, Benchmark
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
+from ..plumbing.runtime import Placement
 from ..policy.checkpoint import CHECKPOINTS, load_policy
 from ..policy.models import MODELS
-from ..runtime import Placement
-from ..stats import mean_interval, success_interval
+from .stats import mean_interval, success_interval
 
 
 @lru_cache(maxsize=8)

@@ -6,10 +6,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..atomic import atomic_path
 from ..envs.registry import Benchmark
-from ..errors import AdlError
-from ..stats import interval_cell, paired_difference, paired_success
+from ..plumbing.atomic import atomic_path
+from ..plumbing.errors import AdlError
+from .stats import interval_cell, paired_difference, paired_success
 
 
 def tasks_cell(r: dict) -> str:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 
-from ..stats import paired_difference, paired_success
+from .stats import paired_difference, paired_success
 from .tables import error_cell
 
 FAST_RATIO = 8.0  # "much faster": DP-16 takes at least this many times FM-1's milliseconds
@@ -68,7 +68,7 @@ def _speed_verdict(fm1: dict, dp16: dict) -> str:
 def _paired_verdict(a: dict, b: dict, not_converged: list[str], scale: float = 1.0) -> str:
     """The claim "a's px is below scale x b's" on the episodes both were evaluated on: supported or contradicted
     only when the paired 95 % bootstrap interval of the per-episode difference excludes zero, else not resolved
-    (adlpipe.stats.PairedDifference); never a finding when a model it rests on is not converged."""
+    (adlpipe.evaluation.stats.PairedDifference); never a finding when a model it rests on is not converged."""
     if a.get("px_per_episode") and b.get("px_per_episode"):
         d = paired_difference(a["px_per_episode"], b["px_per_episode"], scale)
         of = f", of first - {scale:g} x second" if scale != 1 else ""  # the tolerance is part of the claim

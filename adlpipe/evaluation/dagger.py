@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..sim.tasks import FORCE_LIMIT_N
-from ..stats import paired_success, rate_cell
+from .stats import paired_success, rate_cell
 
 # (arm, what it is, the arm it went on from)
 ARMS = (("r0", "round 0: the demonstrations", None),

@@ -16,9 +16,9 @@ import numpy as np
 import torch
 
 from ..dataset.loader import Normalizer, WindowDataset, Windows
+from ..plumbing.runtime import Placement
 from ..policy.checkpoint import load_policy
 from ..policy.inference import predict
-from ..runtime import Placement
 
 MOVING_M = 0.01  # a window whose demonstrated plan moves the arm less than this (over Ta waypoints) is a dwell
 

@@ -8,10 +8,10 @@ from collections import Counter, defaultdict
 import numpy as np
 from tqdm import tqdm
 
-from ..journal import Journal
-from ..runtime import Placement
-from ..stats import success_interval
-from ..workers import stoppable_pool
+from ..plumbing.journal import Journal
+from ..plumbing.runtime import Placement
+from ..plumbing.workers import stoppable_pool
+from .stats import success_interval
 
 
 def run_jobs(worker, jobs: list[tuple], workers: int, placement: Placement,  # noqa: ANN001

@@ -7,7 +7,7 @@ from __future__ import annotations
 import re
 
 from ..sim.tasks import FORCE_LIMIT_N as SAFE_FORCE_N
-from ..stats import paired_success, rate_cell
+from .stats import paired_success, rate_cell
 
 LATENCY = re.compile(r"^(?P<policy>.+)/lat-(?P<ms>[0-9.]+ms|measured)(?:-(?P<mode>sync|async))?$")
 POLICY_NAMES = {"fm_cnn/euler-1": "FM-1", "dp_cnn/ddpm-16": "DP-16"}

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..stats import rate_cell
 from .replay import failure_table
+from .stats import rate_cell
 from .tables import FIXED
 
 PARTS = ("force", "touches", "stroke", "dwell", "placed")

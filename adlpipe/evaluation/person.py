@@ -4,8 +4,8 @@ moving (open and closed loop), paired per scene, per task, with the force on the
 from __future__ import annotations
 
 from ..sim.tasks import FORCE_LIMIT_N
-from ..stats import paired_success, rate_cell
 from .scenes import STILL_DEMO
+from .stats import paired_success, rate_cell
 
 
 def _rows(still: dict, moving: dict) -> list[tuple[str, dict, dict, dict]]:

@@ -12,9 +12,9 @@ import numpy as np
 
 from ..dataset import schema
 from ..dataset.loader import command_series, reference_series
-from ..geometry import path_at
+from ..geometry.transforms import path_at
 from ..sim.tasks import FORCE_LIMIT_N
-from ..stats import paired_success, rate_cell
+from .stats import paired_success, rate_cell
 
 OPEN_LOOP_OF = {"fm_cnn": "fm_cnn/euler-1", "dp_cnn": "dp_cnn/ddpm-16", "bc_cnn": "bc_cnn"}
 

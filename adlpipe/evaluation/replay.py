@@ -17,10 +17,10 @@ from ..dataset.loader import (
     command_series,
     relative_waypoints,
 )
-from ..errors import AdlError
-from ..geometry import path_at
-from ..runtime import Placement
-from ..stats import median_cell
+from ..geometry.transforms import path_at
+from ..plumbing.errors import AdlError
+from ..plumbing.runtime import Placement
+from .stats import median_cell
 
 
 def replay_one(job: tuple) -> tuple[str, str, str, bool, dict]:

@@ -15,9 +15,9 @@ from tqdm import tqdm
 
 from ..dataset import schema
 from ..dataset.splits import load_split
-from ..errors import AdlError
-from ..runtime import Placement
-from ..workers import stoppable_pool
+from ..plumbing.errors import AdlError
+from ..plumbing.runtime import Placement
+from ..plumbing.workers import stoppable_pool
 from .replay import LoopOptions, camera_rate, closed_loop_one, closed_loop_scenes
 
 
@@ -97,6 +97,6 @@ def summary(cfg: RolloutConfig, rows: list[dict]) -> dict:
 
 
 def write_summary(path: Path, s: dict) -> None:
-    from ..atomic import write_text_atomic
+    from ..plumbing.atomic import write_text_atomic
 
     write_text_atomic(path, json.dumps(s, indent=1) + "\n")

@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..camera import PINHOLE, project
 from ..dataset.schema import Episode
-from ..geometry import resample, scale_intrinsics
+from ..geometry.camera import PINHOLE, project
+from ..geometry.transforms import resample, scale_intrinsics
 
 STILL_DEMO = "demo-still-person"  # replay's row of the still person's demonstration run with the person moving
 

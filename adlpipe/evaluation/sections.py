@@ -3,9 +3,9 @@ the grasp tasks, and the per-policy rows `dvc metrics show` prints."""
 
 from __future__ import annotations
 
-from ..atomic import json_text
+from ..plumbing.atomic import json_text
 from ..policy.blind import BLIND
-from ..stats import paired_success, rate_cell
+from .stats import paired_success, rate_cell
 from .tables import FIXED, default_row, error_cell, rate_of, replay_label, share_cell
 
 

@@ -7,10 +7,9 @@ import json
 import math
 from pathlib import Path
 
-from ..errors import AdlError
-from ..stats import interval_cell
-from ..training.validation import converged
-from .training_log import read_training_log
+from ..plumbing.errors import AdlError
+from .stats import interval_cell
+from .training_log import converged, read_training_log
 
 # (benchmark, its pipeline's results folder under pipelines/, the details file there, model, label, demonstrations)
 RUNS = (

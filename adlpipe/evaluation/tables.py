@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from ..policy.blind import BLIND
-from ..stats import interval_cell, paired_difference, paired_success, rate_cell
+from .stats import interval_cell, paired_difference, paired_success, rate_cell
 
 FIXED = "@fixed-speed"  # replay's label suffix for a trajectory run at the task's demonstrated speed
 

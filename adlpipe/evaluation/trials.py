@@ -27,12 +27,12 @@ from pathlib import Path
 from typing import Any
 
 from ..bags.reader import BagSource
-from ..errors import AdlError
+from ..bags.topics import OUTCOME, POLICY
+from ..plumbing.errors import AdlError
 from ..sim.tasks import FORCE_LIMIT_N
 from .decision import Rule, apply_rule
 from .sequential import PairedComparison
 
-OUTCOME, POLICY = "/adl/outcome", "/adl/policy"
 TRUE, FALSE = {"1", "true", "yes", "y", "success"}, {"0", "false", "no", "n", "failure", "fail"}
 
 

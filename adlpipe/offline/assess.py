@@ -14,8 +14,8 @@ import h5py
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..camera import read_lens
-from ..dataset.doctor import gripper_crossings
+from ..curation.doctor import gripper_crossings
+from ..geometry.camera import read_lens
 from .robot import Robot, Tolerances
 from .scene import DepthScene
 

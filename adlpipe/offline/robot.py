@@ -10,7 +10,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..camera import PINHOLE, Lens, project
-from ..geometry import in_camera
+from ..geometry.camera import PINHOLE, Lens, project
+from ..geometry.transforms import in_camera
 
 ROBOT_MASK_PX = 2  # pixels of dilation around the arm's own projection in the first frame
 

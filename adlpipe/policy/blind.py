@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..dataset import schema
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
 
 BLIND = "blind"
 

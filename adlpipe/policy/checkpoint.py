@@ -9,9 +9,9 @@ from pathlib import Path
 
 import torch
 
-from ..atomic import atomic_path
-from ..errors import AdlError
-from ..runtime import Placement
+from ..plumbing.atomic import atomic_path
+from ..plumbing.errors import AdlError
+from ..plumbing.runtime import Placement
 from .models import ModelConfig, Policy
 
 CHECKPOINTS = {"best": "best.pt", "last": "model.pt"}  # the best validation epoch's EMA weights, and the last ones

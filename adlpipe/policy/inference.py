@@ -13,8 +13,8 @@ import torch
 
 from ..dataset import schema
 from ..dataset.loader import Normalizer, observation, observation_from_arrays
-from ..errors import AdlError
-from ..runtime import Placement, synchronize, to_device
+from ..plumbing.errors import AdlError
+from ..plumbing.runtime import Placement, synchronize, to_device
 from .checkpoint import load_policy
 from .models import Observation, Policy
 

@@ -1,9 +1,9 @@
 """The expert who labels a policy's own states (DAgger, Ross et al. 2011) and the operator who takes over when a
 rollout leaves the path (HG-DAgger, Kelly et al. 2019), in the ADL world.
 
-The expert is the demonstrator's own law (adlpipe.recovery): from wherever the command is, back onto the scene's
-demonstrated path, the offset fading, and on along it to the goal, at the demonstration's pace from the point of the
-path the rollout has reached (its phase), not from where the demonstration was at that time: a policy that lags
+The expert is the demonstrator's own law (adlpipe.geometry.recovery): from wherever the command is, back onto the
+scene's demonstrated path, the offset fading, and on along it to the goal, at the demonstration's pace from the point of
+the path the rollout has reached (its phase), not from where the demonstration was at that time: a policy that lags
 behind the demonstration's timetable is led on along the path, not told to dash to catch up (measured: timed labels
 were mostly that dash, docs/science/dagger.md). The phase is tracked from the command as the rollout goes (the
 nearest point of the path up to LOOK_AHEAD_S ahead, never back), and recorded (/adl/expert_phase); with the scene's
@@ -25,8 +25,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry import path_at
-from ..recovery import recovering_plan
+from ..geometry.recovery import recovering_plan
+from ..geometry.transforms import path_at
 
 if TYPE_CHECKING:
     from .episode import Streams

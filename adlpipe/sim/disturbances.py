@@ -3,7 +3,7 @@
 The scripted demonstrator never leaves its own path, so a closed-loop policy trained on it never sees a way back
 once its own plans take the arm off that path (covariate shift, docs/science/closed-loop.md). Here the commanded
 tcp is now and then pushed off the path (an offset of 2-5 cm in a random direction) or held back (a stall, as a
-plan that moves the arm too little), and the demonstrator then returns along adlpipe.recovery's law. The
+plan that moves the arm too little), and the demonstrator then returns along adlpipe.geometry.recovery's law. The
 reference path is recorded beside the command, so training labels are the demonstrator's plans, never the
 disturbance itself (DART, Laskey et al., CoRL 2017).
 """
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..recovery import RETURN_S, offset_left
+from ..geometry.recovery import RETURN_S, offset_left
 
 RISE_S = 0.2  # an offset builds up over this long
 OFFSET_M = (0.02, 0.05)  # its size; replayed policies' re-plans start > 2 cm off the path in 36-62 % of cases
@@ -27,7 +27,8 @@ END_MARGIN_S = 0.2  # the demonstrator is back on its path at least this long be
 @dataclass(frozen=True)
 class Disturbance:
     """From t0 to t1 the command leaves the path: by `offset` (reached at t1), or held where it was at t0 (a stall,
-    offset None); from t1 it returns (adlpipe.recovery), the next one starting RETURN_S later at the earliest."""
+    offset None); from t1 it returns (adlpipe.geometry.recovery), the next one starting RETURN_S later at the
+    earliest."""
 
     t0: float
     t1: float

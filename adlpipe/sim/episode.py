@@ -10,7 +10,7 @@ from dataclasses import dataclass, field, replace
 import mujoco
 import numpy as np
 
-from ..geometry import project
+from ..geometry.transforms import project
 from .controller import ArmController, execute_path, release_and_settle, track_path
 from .person import mover
 from .tasks import TASKS, Scene, SuccessMonitor, Task

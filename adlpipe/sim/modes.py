@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import resample
+from ..geometry.transforms import resample
 from .controller import execute_path
 from .episode import in_mode, keypoint_path, make_scene, spec_from_objects
 from .tasks import TASKS

@@ -27,9 +27,9 @@ from ..dataset.loader import (
 from ..dataset.memory_windows import MAX_BYTES, MemoryBatches, memory_bytes
 from ..dataset.sampling import EpochSampler, TrainingSamples
 from ..dataset.splits import make_split, recording_keys
-from ..errors import AdlError
+from ..plumbing.errors import AdlError
+from ..plumbing.runtime import Ranks
 from ..policy.models import ModelConfig, Observation
-from ..runtime import Ranks
 
 
 def collate_obs(items: list) -> Observation:

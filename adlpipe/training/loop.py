@@ -18,18 +18,19 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from ..atomic import atomic_path, write_json_atomic
 from ..dataset.loader import OPEN_FILES, Augment, Normalizer
 from ..dataset.sampling import EpochSampler, TrainingSamples
 from ..dataset.splits import load_split
-from ..errors import AdlError
+from ..evaluation.training_log import converged
+from ..plumbing.atomic import atomic_path, write_json_atomic
+from ..plumbing.errors import AdlError
+from ..plumbing.runtime import Ranks, all_sum, autocast, barrier, to_device
 from ..policy.checkpoint import load_checkpoint, save_atomic
 from ..policy.models import ModelConfig, Policy
 from ..policy.objectives import Noise
 from ..policy.optim import ADAMW_BETAS, EMA, WARMUP_STEPS, cosine_with_warmup
-from ..runtime import Ranks, all_sum, autocast, barrier, to_device
 from .data import datasets, training_batches, training_episodes
-from .validation import converged, final_metrics, measure, validation_set
+from .validation import final_metrics, measure, validation_set
 
 CHECKPOINT_EVERY_S = 60.0  # last.pt at least this often, and at every validation (the default's: every 20 epochs)
 
@@ -53,9 +54,9 @@ def train(data: Path, split_path: Path, out: Path, cfg: ModelConfig, epochs: int
     and schedule over this run's epochs. corrections_only: see training.data.datasets. steps: the optimiser steps
     in all instead of `epochs` (as many epochs as that takes: one budget whatever the number of episodes).
     stop_floor: stop at the first validation from this epoch on at which the run has converged by the 2 % rule
-    that judges convergence (validation.converged); the schedule stays the cap's (`epochs`), so a stopped run is the
-    capped run's first epochs exactly, and its best.pt the capped run's whenever the best epoch came before the
-    stop."""
+    that judges convergence (evaluation.training_log.converged); the schedule stays the cap's (`epochs`), so a
+    stopped run is the capped run's first epochs exactly, and its best.pt the capped run's whenever the best epoch
+    came before the stop."""
     device, ranks = device or torch.device("cpu"), ranks or Ranks()
     out.mkdir(parents=True, exist_ok=True)
     work = resume_dir or out

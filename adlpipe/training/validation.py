@@ -8,13 +8,12 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from ..dataset.loader import Normalizer
+from ..evaluation.stats import mean_interval
+from ..evaluation.training_log import converged
+from ..plumbing.runtime import Ranks, autocast, generator, to_device
 from ..policy.models import ModelConfig, Observation, Policy
 from ..policy.objectives import Noise
-from ..runtime import Ranks, autocast, generator, to_device
-from ..stats import mean_interval
 from .data import collate_obs
-
-CONVERGENCE_TOLERANCE = 0.02  # best val px may fall by at most 2 % over the last fifth of training
 
 
 @torch.no_grad()
@@ -66,16 +65,6 @@ def measure(model: Policy, test_loader: DataLoader, val_obs: Observation | None,
         return test_loss, None, None
     per_episode = validation_px(model, val_obs, val_target, norm, seed, precision)
     return test_loss, float(np.mean(per_episode)), list(mean_interval(per_episode))
-
-
-def converged(history: list[dict], tolerance: float = CONVERGENCE_TOLERANCE) -> bool:
-    """False if the best val px over the whole run is more than `tolerance` below the best of its first 4/5."""
-    vals = [(r["epoch"], r["val_px"]) for r in history if r.get("val_px") is not None]
-    if len(vals) < 2:
-        return False
-    cut = 0.8 * history[-1]["epoch"]
-    early = [v for e, v in vals if e <= cut]
-    return bool(early) and min(v for _, v in vals) >= (1 - tolerance) * min(early)
 
 
 def final_metrics(history: list[dict], cfg: ModelConfig, epochs: int, steps_per_epoch: int, n_train: int, n_val: int,

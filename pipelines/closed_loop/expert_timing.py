@@ -20,7 +20,7 @@ import h5py
 import numpy as np
 
 from adlpipe.dataset.loader import command_series, reference_series
-from adlpipe.geometry import path_at
+from adlpipe.geometry.transforms import path_at
 from adlpipe.sim.dagger import Expert
 
 

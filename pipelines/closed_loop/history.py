@@ -16,7 +16,7 @@ import numpy as np
 
 from adlpipe.dataset.splits import load_split
 from adlpipe.evaluation.history import MOVING_M, plan_lengths
-from adlpipe.stats import median_cell
+from adlpipe.evaluation.stats import median_cell
 
 
 def main(argv: list[str]) -> int:

@@ -43,8 +43,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..errors import AdlError
-from . import schema
+from ..dataset import schema
+from ..plumbing.errors import AdlError
 from .lerobot_video import VIDEO_FILE_MB, VIDEO_PATH, VideoFiles, video_feature
 
 CODEBASE_VERSION = "v3.0"

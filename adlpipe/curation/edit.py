@@ -18,8 +18,8 @@ from pathlib import Path
 
 import h5py
 
-from ..errors import AdlError
-from . import schema, shards
+from ..dataset import schema, shards
+from ..plumbing.errors import AdlError
 
 
 @dataclass

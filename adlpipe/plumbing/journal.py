@@ -14,7 +14,6 @@ import json
 import os
 from pathlib import Path
 
-from .dataset.from_bag import sha256_of
 from .errors import AdlError
 
 # arguments that change where or how fast a stage runs, never its figures
@@ -29,6 +28,12 @@ def fingerprint(args: argparse.Namespace, checkpoints: list[Path], split: Path, 
             "split": sha256_of(split), "data": [str(data.resolve()), st.st_size, st.st_mtime_ns],
             "checkpoints": {str(p): sha256_of(p) for p in checkpoints if p.exists()}}
     return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def sha256_of(path: Path) -> str:
+    """A file's sha256 (the split, a checkpoint), read in blocks."""
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 class Journal:

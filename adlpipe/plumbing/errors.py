@@ -74,7 +74,7 @@ def os_error_message(exc: OSError) -> str:
 
 # A Ctrl-C is remembered as well as raised: Python drops a KeyboardInterrupt that lands in a finaliser or a weakref
 # callback ("Exception ignored in ..."), and h5py's and torch's objects run many. Every atomic commit checks the flag
-# first (adlpipe.atomic), so a swallowed Ctrl-C still stops the stage before it replaces an output.
+# first (adlpipe.plumbing.atomic), so a swallowed Ctrl-C still stops the stage before it replaces an output.
 _INTERRUPTED = threading.Event()
 _COMMITTED: list[str] = []  # outputs replaced in full since the stage started, in order
 
@@ -113,7 +113,7 @@ def interrupted_line(prog: str) -> str:
 
 def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] | None = None) -> int:
     """Run a stage's main(); AdlError, OS errors and KeyboardInterrupt become one line on stderr. Outputs are
-    written atomically (adlpipe.atomic), so whatever stopped the stage, the old files are still there."""
+    written atomically (adlpipe.plumbing.atomic), so whatever stopped the stage, the old files are still there."""
     _INTERRUPTED.clear()
     _COMMITTED.clear()
     main_thread = threading.current_thread() is threading.main_thread()

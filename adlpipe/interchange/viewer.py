@@ -30,10 +30,10 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..atomic import atomic_path
-from ..camera import project, read_lens
-from ..errors import AdlError, one_line
-from . import schema
+from ..dataset import schema
+from ..geometry.camera import project, read_lens
+from ..plumbing.atomic import atomic_path
+from ..plumbing.errors import AdlError, one_line
 
 EE_COLOR = [250, 200, 40]
 GAP_S = 1.0  # between episodes on dataset_time
@@ -203,8 +203,8 @@ def write_bag_beside_episode(out: Path, data: Path, name: str, bag: Path, config
     from ..bags.episode_reader import read_bag, stamp_s
     from ..bags.images import as_rgb8, decode_image
     from ..bags.reader import BagSource
-    from .from_bag import end_effector_path, sha256_of
-    from .verify import topic_map_of
+    from ..curation.verify import topic_map_of
+    from ..dataset.from_bag import end_effector_path, sha256_of
 
     with schema.open_dataset(data, [name]) as f:
         g = f[schema.EPISODES][name]

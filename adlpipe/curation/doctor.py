@@ -15,8 +15,9 @@ import h5py
 import numpy as np
 from scipy.stats import median_abs_deviation
 
-from ..geometry import path_at
-from . import schema
+from ..dataset import schema
+from ..dataset.frames import nearest_index
+from ..geometry.transforms import path_at
 from .doctor_checks import (
     by_task,
     camera_figures,
@@ -30,7 +31,6 @@ from .doctor_checks import (
     path_signature,
 )
 from .doctor_signals import action_figures, chatter, joint_figures, near_duplicates, non_finite_notes, signature
-from .frames import nearest_index
 
 RESAMPLE_HZ = 50.0  # the end-effector path is resampled at this rate for speed, jerk and idle time
 DEPTH_SAMPLES = 8  # depth images per episode read for the share of holes

@@ -47,7 +47,7 @@ class Parser(argparse.ArgumentParser):
         return parsed
 
     def add_force(self) -> None:
-        """--force: replace outputs a DVC pipeline owns (adlpipe.dvc_outputs refuses them otherwise)."""
+        """--force: replace outputs a DVC pipeline owns (adlpipe.plumbing.dvc_outputs refuses them otherwise)."""
         self.add_argument("--force", action="store_true",
                           help="replace outputs that a DVC pipeline (dvc.lock) owns; refused without it outside dvc "
                           "repro")

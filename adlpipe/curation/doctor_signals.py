@@ -14,8 +14,8 @@ import numpy as np
 from scipy.signal import medfilt
 from scipy.spatial.distance import pdist, squareform
 
-from ..geometry import path_at
-from .from_bag import NON_FINITE
+from ..dataset.from_bag import NON_FINITE
+from ..geometry.transforms import path_at
 
 SIGNATURE_POINTS = 64  # frames whose end-effector position stands for a recording (near duplicates)
 THUMBNAIL = 16  # and its first frame's grey thumbnail, THUMBNAIL x THUMBNAIL

@@ -20,8 +20,8 @@ import h5py
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from ..camera import distort, maps_outward, read_lens
-from ..geometry import path_at
+from ..geometry.camera import distort, maps_outward, read_lens
+from ..geometry.transforms import path_at
 from .doctor_signals import best_lag
 
 CLOCK_MAX_LAG_S = 0.5  # lags searched between image motion and end-effector speed

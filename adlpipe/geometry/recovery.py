@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import path_at
+from .transforms import path_at
 
 RETURN_TAU_S = 0.3  # the time constant of the return: 95 % of an offset gone in 0.9 s
 RETURN_S = 3 * RETURN_TAU_S  # what a disturbance leaves free after it for the return

@@ -153,7 +153,7 @@ def pinhole(pc: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 def project(points: np.ndarray, K: np.ndarray, T_base_camera: np.ndarray) -> np.ndarray:
     """Pixel coordinates (u, v) of base-frame points seen by a pinhole camera at T_base_camera (ROS optical frame);
-    a camera with a lens: adlpipe.camera.project."""
+    a camera with a lens: adlpipe.geometry.camera.project."""
     return pinhole(in_camera(points, T_base_camera), K)
 
 

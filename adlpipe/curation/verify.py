@@ -20,10 +20,10 @@ import numpy as np
 from ..bags.segments import find_segments
 from ..bags.splits import recordings
 from ..bags.topics import TopicMap
-from ..errors import AdlError
-from . import schema
-from .frames import FrameWriter
-from .from_bag import extract_episode, sha256_of
+from ..dataset import schema
+from ..dataset.frames import FrameWriter
+from ..dataset.from_bag import extract_episode, sha256_of
+from ..plumbing.errors import AdlError
 
 TOLERANCE_LEVELS = 1  # grey levels a resized frame may differ by
 FLOAT_TOLERANCE = 1e-6  # seconds, metres, pixels

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .errors import AdlError
-from .geometry import in_camera, pinhole
+from ..plumbing.errors import AdlError
+from .transforms import in_camera, pinhole
 
 COEFFICIENTS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
 

@@ -1,0 +1,1 @@
+"""Datasets in other tools' formats: LeRobot v3 (Parquet and video) and Rerun recordings."""
