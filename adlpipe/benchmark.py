@@ -24,25 +24,21 @@ Writes --metrics (headline), --details (per episode) and --table (the Table 2 re
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from .envs.registry import BENCHMARKS
-from .evaluation.benchmark_runs import curve_summary, episode_jobs, run_episodes, summary
-from .evaluation.benchmark_tables import compare, plot_curves, score_cell, success_cell, table
-from .plumbing.atomic import check_outputs, json_text, write_all_atomic
-from .plumbing.cli import SEED, Parser, int_range
+from .evaluation.benchmark_runs import FIRST_SEED, BenchmarkConfig, run_benchmark
+from .evaluation.benchmark_tables import compare, score_cell, success_cell
+from .plumbing.atomic import check_outputs
+from .plumbing.cli import SEED, Parser, config_from, int_range
 from .plumbing.errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS
 from .policy.objectives import DDPM
 
-FIRST_SEED = 100_000
 
-
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None) -> BenchmarkConfig | list[Path]:
+    """The options as the run's configuration, its outputs checked; with --compare, the details files to compare."""
     p = Parser("python -m adlpipe.benchmark", __doc__)
     p.add_argument("--env", choices=sorted(BENCHMARKS), default="pusht")
     p.add_argument("--models", nargs="+", type=Path)
@@ -81,7 +77,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.io(inputs=["models", "compare"], outputs=["metrics", "details", "table", "curve_plot"])
     args = p.parse_args(argv)
     if args.compare:
-        return args
+        return list(args.compare)
     if not args.models:
         p.error("--models is required (or --compare DETAILS)")
     if args.seed + max(args.episodes, args.curve_episodes or 0) - 1 > 2**32 - 1:
@@ -89,50 +85,26 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                 "past the largest seed 2**32 - 1")
     if len(set(map(Path.resolve, args.models))) < len(args.models):
         raise AdlError("--models: a model is named twice")
-    return args
+    c = config_from(args, BenchmarkConfig, metrics=args.metrics or Path(f"metrics/{args.env}.json"),
+                    details=args.details or Path(f"metrics/{args.env}_details.json"),
+                    table=args.table or Path(f"reports/{args.env}.md"),
+                    curve_plot=(args.curve_plot or Path(f"reports/{args.env}_curves.png")) if args.curve else None)
+    check_outputs(c.metrics, c.details, c.table, *([c.curve_plot] if c.curve_plot else []))
+    return c
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    if args.compare:
-        compare(args.compare)
+    c = parse_args(argv)
+    if isinstance(c, list):  # --compare: run nothing
+        compare(c)
         return 0
-    bench = BENCHMARKS[args.env]
-    args.max_steps = args.max_steps or bench.max_steps  # the environment's limit unless --max-steps
-    metrics = args.metrics or Path(f"metrics/{args.env}.json")
-    details = args.details or Path(f"metrics/{args.env}_details.json")
-    table_path = args.table or Path(f"reports/{args.env}.md")
-    plot_path = (args.curve_plot or Path(f"reports/{args.env}_curves.png")) if args.curve else None
-    check_outputs(metrics, details, table_path, *([plot_path] if plot_path else []))
-    bench.env().make_env().close()  # the optional extra's absence: one line
-    per, along, ref_eps = run_episodes(args, bench, *episode_jobs(args, bench))
-    refs = {k: summary(eps, bench.tasks) for k, eps in ref_eps.items()}
-    rows = {key: {**summary(eps, bench.tasks), "ms": float(np.median([e["ms"] for e in eps]))}
-            for key, eps in per.items()}
-    curves = {key: curve_summary(sorted(by_step.items())) for key, by_step in along.items()}
-    headline = {f"{m}/{s}/{ck}": {"score": round(r["score"], 3), "success": round(r["success"], 3)}
-                for (m, s, ck), r in rows.items()}
-    headline.update({f"{m}/{s}/curve": {"score_max": round(c["max"]["score"], 3),
-                                        "score_last3": round(c["last"]["score"], 3)} for (m, s), c in curves.items()})
-    write_all_atomic({
-        metrics: json_text(headline),
-        details: json_text({"env": args.env, "episodes": args.episodes, "first_seed": args.seed,
-                            "execute": args.execute, "max_steps": args.max_steps,
-                            "results": [{"model": m, "steps": s, "checkpoint": ck, **r, "per_episode": per[(m, s, ck)]}
-                                        for (m, s, ck), r in rows.items()],
-                            "curves": [{"model": m, "steps": s, "episodes": args.curve_episodes or args.episodes, **c}
-                                       for (m, s), c in curves.items()],
-                            "references": {k: {**refs[k], "per_episode": ref_eps[k]} for k in refs}}),
-        table_path: table(bench, rows, refs, args.episodes, args.execute, args.seed, args.max_steps, curves)})
-    if plot_path:
-        plot_curves(curves, refs, plot_path, bench.title)
+    rows, curves = run_benchmark(c)
     for (m, s, ck), r in rows.items():
         print(f"{m} {s} steps ({ck}): score {score_cell(r)}, success {success_cell(r)}")
-    for (m, s), c in curves.items():
-        print(f"{m} {s} steps along training: max {c['max']['score']:.3f} at step {c['max']['step']}, "
-              f"last 3 {c['last']['score']:.3f}")
+    for (m, s), cv in curves.items():
+        print(f"{m} {s} steps along training: max {cv['max']['score']:.3f} at step {cv['max']['step']}, "
+              f"last 3 {cv['last']['score']:.3f}")
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(run_cli("adlpipe.benchmark", main))

@@ -21,25 +21,16 @@ import os
 import sys
 from pathlib import Path
 
-import torch
-
-from .dataset import schema
-from .dataset.splits import load_split
-from .evaluation.accuracy import blind_rows, evaluate_models, reference_modes
-from .evaluation.accuracy_tables import headline, steps_csv, table1
-from .plumbing.atomic import check_outputs, json_text, write_all_atomic
-from .plumbing.cli import NON_NEGATIVE, POSITIVE, SEED, Parser, int_range
+from .evaluation.evaluate_run import STEPS, EvaluateConfig, run_evaluation
+from .plumbing.atomic import check_outputs
+from .plumbing.cli import NON_NEGATIVE, POSITIVE, SEED, Parser, config_from, int_range
 from .plumbing.dvc_outputs import refuse_pipeline_outputs
-from .plumbing.errors import AdlError, run_cli
-from .plumbing.journal import Journal, fingerprint
+from .plumbing.errors import run_cli
 from .plumbing.runtime import Placement, add_device_args
-from .policy.blind import BLIND
-from .policy.checkpoint import CHECKPOINTS
-
-STEPS = [1, 2, 4, 8, 16]
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> EvaluateConfig:
+    """The options as the run's configuration, its outputs checked (writable, not a DVC stage's unless --force)."""
     p = Parser("python -m adlpipe.evaluate", __doc__)
     p.add_argument("--models", nargs="+", type=Path, required=True, help="model folders (holding model.pt)")
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
@@ -66,46 +57,17 @@ def main(argv: list[str] | None = None) -> int:
     p.io(inputs=["models", "data", "split"], outputs=["metrics", "details", "plots", "table"],
          implied=lambda a: [a.data.with_name("split.json")] if a.split is None else [])
     args = p.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    placement = Placement.from_args(args)
-    check_outputs(args.metrics, args.details, args.plots, args.table)
-    refuse_pipeline_outputs([args.metrics, args.details, args.plots, args.table], args.force)
-    split_path = args.split or args.data.with_name("split.json")
-    split = load_split(split_path)
-    if not split["test"]:
-        raise AdlError("the test split is empty: record more episodes per task")
-    with schema.open_dataset(args.data, split["test"]) as f:
-        image_px = int(f[schema.EPISODES][split["test"][0]]["rgb"].shape[0])
-    modes = reference_modes(args.data, split["test"], args.workers)
-    for d in args.models:
-        for name in CHECKPOINTS.values():
-            if not (d / name).exists():
-                raise AdlError(f"{d}: no {name}; train it first (python -m adlpipe.train)")
-    journal = Journal(args.details, fingerprint(args, [d / n for d in args.models for n in CHECKPOINTS.values()],
-                                                split_path, args.data))
-    if journal.done:
-        print(f"resuming: {len(journal.done)} model(s) evaluated before ({journal.path})")
-    with journal:
-        results, training = evaluate_models(args, journal, split["test"], image_px, modes, placement)
-    try:
-        blind = blind_rows(args.data, split, image_px, args.best_of)
-        results[BLIND] = {"best": blind, "last": blind}
-    except AdlError as exc:  # a test task without training episodes: no floor to state
-        print(f"no blind baseline row: {exc}")
-    title = "# Trajectory error and inference time on the test split\n\n"
-    write_all_atomic({
-        args.details: json_text({"n_test": len(split["test"]), "best_of": args.best_of, "training": training,
-                                 "mode_scenes": len(modes),
-                                 "device": str(placement.device), "precision": placement.precision,
-                                 "compiled": placement.compile, "models": results}),
-        args.metrics: json_text(headline(results, training, len(split["test"]))),
-        args.plots: steps_csv(results, args.steps),
-        args.table: title + table1(results, args.best_of, training)})
-    journal.close()
-    print(f"wrote {args.metrics}, {args.details}, {args.plots}, {args.table}")
-    return 0
+    c = config_from(args, EvaluateConfig, split=args.split or args.data.with_name("split.json"),
+                    placement=Placement.from_args(args))
+    check_outputs(c.metrics, c.details, c.plots, c.table)
+    refuse_pipeline_outputs([c.metrics, c.details, c.plots, c.table], args.force)
+    return c
 
+
+def main(argv: list[str] | None = None) -> int:
+    c = parse_args(argv)
+    run_evaluation(c)
+    return 0
 
 if __name__ == "__main__":
     sys.exit(run_cli("adlpipe.evaluate", main))

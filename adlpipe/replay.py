@@ -45,51 +45,23 @@ still person's demonstration of the same scene run with the person moving (a per
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
-from collections import defaultdict
-from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-from tqdm import tqdm
-
-from .dataset import schema
-from .dataset.splits import load_split
-from .evaluation.decision import Rule, decide_replay
-from .evaluation.jobs import run_jobs, success_summary
-from .evaluation.outcomes import failure_sections, failure_strips, success_table
-from .evaluation.replay import (
-    ENSEMBLED,
-    LoopOptions,
-    camera_rate,
-    closed_loop_one,
-    closed_loop_scenes,
-    demonstrated_speeds,
-    every_task_first,
-    oracle_jobs,
-    path_length,
-    replay_one,
-    training_summary,
-)
-from .evaluation.scenes import STILL_DEMO, ReplayScene, fresh_scene, from_episode
-from .evaluation.tables import FIXED
-from .plumbing.atomic import check_outputs, json_text, write_all_atomic
-from .plumbing.cli import POSITIVE, SEED, Parser, float_range, int_range, read_token_file
+from .evaluation.replay_run import ReplayConfig, run_replay
+from .plumbing.atomic import check_outputs
+from .plumbing.cli import POSITIVE, SEED, Parser, config_from, float_range, int_range
 from .plumbing.dvc_outputs import refuse_pipeline_outputs
-from .plumbing.errors import AdlError, read_json_object, run_cli
-from .plumbing.journal import Journal, Section, fingerprint
+from .plumbing.errors import AdlError, run_cli
 from .plumbing.runtime import Placement, add_device_args
-from .plumbing.workers import stoppable_pool
-from .policy.blind import BLIND, blind_predictions, task_means
-from .policy.checkpoint import CHECKPOINTS, load_policy
-from .policy.inference import label_of, predict_episodes, predict_scenes, steps_for
+from .policy.checkpoint import CHECKPOINTS
 
 MAX_SCENES = 1000  # per task: 10,000 scenes' first frames, about 2 GB, fit a laptop; 1e9 were killed at 22 GB
 
 
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None) -> ReplayConfig:
+    """The options as the run's configuration, its outputs checked (writable, not a DVC stage's unless --force)."""
     p = Parser("python -m adlpipe.replay", __doc__)
     p.add_argument("--models", nargs="*", type=Path, default=[], help="model folders (holding model.pt)")
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
@@ -188,122 +160,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.until_decided and not args.eval.is_file():
         raise AdlError(f"--eval {args.eval}: no such file; --until-decided reads each policy's latency from "
                        "evaluate's details (python -m adlpipe.evaluate --details ...)")
-    return args
-
-
-def recorded_episodes(args: argparse.Namespace, names: list[str]) -> tuple[list, list[float]]:
-    """The named test episodes of the ADL world and their camera rates (one line for a foreign recording)."""
-    from .sim.tasks import TASKS
-    from .sim.world import SCENE_OBJECTS
-
-    with schema.open_dataset(args.data, names) as f:
-        eps = [schema.read_episode(f, n) for n in names]
-        rates = [camera_rate(f, n) for n in names]
-    for ep in eps:
-        if ep.task not in TASKS:
-            raise AdlError(f"{ep.source_path}: task {ep.task!r} is not a task of the MuJoCo ADL world")
-        unknown = set(ep.object_names) - SCENE_OBJECTS
-        if unknown:
-            raise AdlError(f"{ep.source_path}: frames {sorted(unknown)} are not objects of the ADL world; "
-                           "replay works on bags recorded by adlpipe.record")
-    return eps, rates
-
-
-def _fresh_one(job: tuple) -> ReplayScene:
-    return fresh_scene(*job)
-
-
-def fresh_scenes(args: argparse.Namespace, tasks: list[str], names: list[str],
-                 indices: range | None = None) -> list[ReplayScene]:
-    """Fresh scenes `indices` (default: the first args.scenes) of each task, built in a pool (each runs the
-    demonstrator once per draw), rendered live in closed loop at the rate of the recorded test episodes `names`
-    unless told."""
-    from .sim.tasks import TASKS
-
-    unknown = [t for t in tasks if t not in TASKS]
-    if unknown:
-        raise AdlError(f"--scenes: task(s) {unknown} of {args.data} are not tasks of the MuJoCo ADL world")
-    with schema.open_dataset(args.data, names) as f:
-        size, horizon = int(f.attrs["image_size"]), int(f.attrs["n_waypoints"])
-        camera_hz = args.scene_camera_hz or float(np.median([camera_rate(f, n) for n in names]))
-    jobs = [(t, i, args.scene_seed, args.scene_camera_size or size, size, horizon, camera_hz, args.moving_person)
-            for t in tasks for i in (indices or range(args.scenes))]
-    with stoppable_pool(args.workers) as pool:  # Ctrl-C stops the demonstrators at once
-        return list(tqdm(pool.imap(_fresh_one, jobs, chunksize=2), total=len(jobs), desc="scenes", unit="scene",
-                         file=sys.stderr, disable=None))
-
-
-def open_loop_jobs(args: argparse.Namespace, split: dict, scenes: list[ReplayScene], recorded: list[str] | None,
-                   checkpoint: str, placement: Placement) -> tuple[list[tuple], dict[str, np.ndarray]]:
-    """Every (policy, scene, timing) replay, with each policy's predicted waypoints (u, v, x, y, z) per scene."""
-    trajs = {"demo": np.stack([np.concatenate([s.traj2d, s.traj3d], 1) for s in scenes])}
-    if any(s.still_traj is not None for s in scenes):  # the person moves: open loop's ceiling, on the scenes whose
-        # still twin is the same scene (NaN: the demonstrator failed with the person moving and the scene was redrawn)
-        nan = np.full_like(trajs["demo"][0], np.nan)
-        trajs[STILL_DEMO] = np.stack([nan if s.still_traj is None else s.still_traj for s in scenes])
-    try:
-        trajs[BLIND] = blind_predictions(task_means(args.data, split["train"]), [s.task for s in scenes])
-    except AdlError as exc:  # a test task without training episodes: no floor to state
-        print(f"no blind baseline row: {exc}")
-    for d in args.models:
-        if recorded is not None:
-            trajs.update(predict_episodes(d, checkpoint, args.data, recorded, args.fm_steps, args.dp_steps,
-                                          args.seed, placement))
-        else:
-            trajs.update(predict_scenes(d, checkpoint, scenes, args.fm_steps, args.dp_steps, args.seed, placement))
-    speeds = demonstrated_speeds(args.data, split["train"]) if "fixed" in args.speed_profile else {}
-    jobs = []
-    for label, traj in trajs.items():
-        for i, s in enumerate(scenes):
-            if np.isnan(traj[i]).any():
-                continue
-            if "demo" in args.speed_profile:
-                jobs.append((label, s.name, s.task, s.object_names, s.objects, traj[i, :, 2:], s.duration_s,
-                             s.person))
-            if "fixed" in args.speed_profile:
-                if s.task not in speeds:
-                    raise AdlError(f"--speed-profile fixed: no training episodes of task {s.task!r}")
-                duration = max(path_length(traj[i, :, 2:]) / speeds[s.task], 1.0)
-                jobs.append((label + FIXED, s.name, s.task, s.object_names, s.objects, traj[i, :, 2:], duration,
-                             s.person))
-    return jobs, trajs
-
-
-def closed_loop_jobs(args: argparse.Namespace, scenes: list[ReplayScene], checkpoint: str,
-                     placement: Placement) -> list[tuple]:
-    if not args.models:
-        raise AdlError("--closed-loop needs --models")
-    jobs = []
-    for i, d in enumerate(args.models):
-        policy = load_policy(d / checkpoint)[0]
-        if not policy.cfg.closed_loop:
-            raise AdlError(f"{d}: trained on first frames only; closed loop needs a model trained with "
-                           "python -m adlpipe.train --closed-loop")
-        if policy.cfg.target == "action":
-            raise AdlError(f"{d}: predicts the bags' action stream, not end-effector waypoints; run it with "
-                           "python -m adlpipe.benchmark (Push-T)")
-        if policy.cfg.views > 1:
-            raise AdlError(f"{d}: sees cameras {', '.join(policy.cfg.cameras)}; the ADL world renders one "
-                           "camera, so closed-loop replay cannot feed it")
-        if i == 0 and args.oracle:  # in the first model's format
-            jobs += oracle_jobs(d, policy.cfg.horizon, checkpoint, scenes, args.oracle, args.closed_loop, placement,
-                                args.time_limit, args.temporal_ensemble, loop_options(args))
-        for steps in steps_for(policy.family, args.fm_steps, args.dp_steps):
-            for ta in args.closed_loop:
-                if ta > policy.cfg.horizon:
-                    raise AdlError(f"--closed-loop {ta}: {d} predicts only {policy.cfg.horizon} waypoints")
-                label = f"{label_of(d, policy.default_method, policy.family, steps)}/Ta-{ta}" + (
-                    ENSEMBLED if args.temporal_ensemble is not None else "")
-                for suffix, opts in loop_options(args):
-                    jobs += [(label + suffix, str(d), checkpoint, sc, steps, ta, args.seed, placement, None,
-                              args.time_limit, args.temporal_ensemble, opts) for sc in scenes]
-    if args.trial_bags:  # trial k of every policy before trial k + 1 of any: the series a lab runs, alternating
-        policy = [i for i, j in enumerate(jobs) if j[8] is None]  # not the oracle's: scenes in order per row
-        order = sorted(range(len(policy)), key=lambda k: (k % len(scenes), k // len(scenes)))
-        for trial, k in enumerate(order):
-            i = policy[k]
-            jobs[i] = (*jobs[i][:-1], replace(jobs[i][-1], trial_index=trial))
-    return jobs
+    cfg = config_from(args, ReplayConfig, split=args.split or args.data.with_name("split.json"),
+                      eval_details=args.eval, placement=Placement.from_args(args))
+    check_outputs(cfg.metrics, cfg.details, cfg.table)
+    refuse_pipeline_outputs([cfg.metrics, cfg.details, cfg.table, cfg.failures], args.force)
+    return cfg
 
 
 def latency_value(text: str) -> float | None:
@@ -313,132 +174,12 @@ def latency_value(text: str) -> float | None:
     return float_range(0, 10_000)(text)
 
 
-def loop_options(args: argparse.Namespace) -> list[tuple[str, LoopOptions]]:
-    """(label suffix, options) of every latency and execution row of a closed-loop replay."""
-    token = read_token_file(args.token_file) if args.token_file else None
-    trial_dir = str(args.trial_bags) if args.trial_bags else None
-    base = LoopOptions(server=args.server, token=token, trial_dir=trial_dir)
-    if not args.latency:
-        return [("", base)]
-    out = []
-    for ms in args.latency:
-        if ms == 0:  # nothing to wait for: holding and going on are the same rollout, one row
-            out.append(("/lat-0ms", base))
-            continue
-        for mode in args.execution:
-            name = "measured" if ms is None else f"{ms:g}ms"
-            out.append((f"/lat-{name}-{mode}",
-                        replace(base, latency_s=None if ms is None else ms / 1000.0, execution=mode)))
-    return out
-
-
-def test_tasks(data: Path, names: list[str]) -> list[str]:
-    with schema.open_dataset(data, names) as f:
-        return sorted({str(f[schema.EPISODES][n].attrs["task"]) for n in names})
-
-
-def replay_until_decided(args: argparse.Namespace, split: dict, tasks: list[str], names: list[str], checkpoint: str,
-                         placement: Placement, journal: Journal) -> tuple[list, dict, tuple, dict]:
-    """Batches of fresh scenes, every policy on each, until the decision rule is decided or the cap is reached.
-    Every batch's outcomes go into the journal under its own key, so a killed run resumes at its batch."""
-    ev = read_json_object(args.eval, "evaluate details")
-    rule = Rule(args.margin, args.alpha)
-    scenes: list[ReplayScene] = []
-    trajs: dict[str, list] = {}
-    wins: dict = defaultdict(lambda: defaultdict(list))
-    per_episode: dict = defaultdict(dict)
-    diagnostics: dict = defaultdict(dict)
-    looks, decision = [], None
-    for start in range(0, args.scenes, args.batch):
-        batch = fresh_scenes(args, tasks, names, range(start, min(start + args.batch, args.scenes)))
-        jobs, got = open_loop_jobs(args, split, batch, None, checkpoint, placement)
-        w, pe, dg = run_jobs(replay_one, jobs, args.workers, placement, Section(journal, f"batch{start}:"))
-        scenes += batch
-        for label, traj in got.items():
-            trajs.setdefault(label, []).append(traj)
-        for label in w:
-            for task, oks in w[label].items():
-                wins[label][task] += oks
-            per_episode[label].update(pe[label])
-            diagnostics[label].update(dg.get(label, {}))
-        decision = decide_replay(ev, {"per_episode": per_episode, "diagnostics": diagnostics}, rule)
-        if decision is None:
-            raise AdlError(f"--until-decided: fewer than two of the policies in {args.eval} were replayed; the rule "
-                           "chooses between evaluated models (--models)")
-        looks.append({"scenes": len(scenes), "status": decision["status"], "recommended": decision["recommended"]})
-        print(f"after {len(scenes)} scenes: {decision['status']}"
-              + (f" ({decision['recommended']})" if decision["recommended"] else ""))
-        if decision["status"] == "decided":
-            break
-    reason = (f"decided after {len(scenes)} scenes" if decision["status"] == "decided"
-              else f"the cap ({args.scenes} per task) reached, undecided")
-    sequential = {"batch_per_task": args.batch, "cap_per_task": args.scenes, "scenes": len(scenes),
-                  "reason": reason, "looks": looks, "rule": rule.__dict__}
-    return scenes, {k: np.concatenate(v) for k, v in trajs.items()}, (wins, per_episode, diagnostics), sequential
-
-
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    placement = Placement.from_args(args)
-    checkpoint = CHECKPOINTS[args.checkpoint]
-    check_outputs(args.metrics, args.details, args.table)
-    refuse_pipeline_outputs([args.metrics, args.details, args.table, args.failures], args.force)
-    split_path = args.split or args.data.with_name("split.json")
-    split = load_split(split_path)
-    names = split["test"]
-    if args.max_episodes and args.max_episodes < len(names) and not args.scenes:
-        names = every_task_first(args.data, names, args.max_episodes)
-    if not names:
-        raise AdlError("the test split is empty: nothing to replay")
-    journal = Journal(args.details, fingerprint(args, [d / checkpoint for d in args.models], split_path, args.data))
-    if journal.done:
-        print(f"resuming: {len(journal.done)} policies replayed before ({journal.path})")
-    trajs: dict[str, np.ndarray] = {}
-    sequential = None
-    if args.until_decided:
-        tasks = test_tasks(args.data, names)
-        with journal:
-            scenes, trajs, (wins, per_episode, diagnostics), sequential = replay_until_decided(
-                args, split, tasks, names, checkpoint, placement, journal)
-        where = f"{len(scenes) // len(tasks)} fresh scenes per task (seed {args.scene_seed}), until decided"
-    else:
-        with journal:  # a clean refusal while building the jobs (a bad checkpoint, a foreign task) leaves none
-            if args.scenes:
-                scenes = fresh_scenes(args, test_tasks(args.data, names), names)
-                person = ", the person moving" if args.moving_person else ""
-                where = f"{args.scenes} fresh scenes per task (seed {args.scene_seed}{person})"
-            else:
-                eps, rates = recorded_episodes(args, names)
-                scenes = (closed_loop_scenes(args.data, eps, rates) if args.closed_loop
-                          else [from_episode(ep) for ep in eps])
-                where = "test split"
-            if args.closed_loop:
-                worker, jobs = closed_loop_one, closed_loop_jobs(args, scenes, checkpoint, placement)
-            else:
-                worker = replay_one
-                jobs, trajs = open_loop_jobs(args, split, scenes, None if args.scenes else names, checkpoint,
-                                             placement)
-            wins, per_episode, diagnostics = run_jobs(worker, jobs, args.workers, placement, journal)
-    result = success_summary(wins)
-    strips = {} if args.closed_loop else failure_strips(args.failures, scenes, trajs, diagnostics, per_episode,
-                                                        args.strip)
-    kind = ({"kind": "fresh", "per_task": len(scenes) // len({s.task for s in scenes}), "seed": args.scene_seed,
-             "moving_person": args.moving_person} if args.scenes else {"kind": "recorded"})
-    write_all_atomic({**strips,
-        args.details: json_text({"episodes": len(scenes), "checkpoint": args.checkpoint, "scenes": kind,
-                                 "success": result, "tasks": {s.name: s.task for s in scenes},
-                                 "per_episode": per_episode, "diagnostics": diagnostics,
-                                 "training": training_summary(args.models),
-                                 **({"sequential": sequential} if sequential else {})}),
-        args.metrics: json_text({"episodes": len(scenes), "checkpoint": args.checkpoint, "scenes": kind["kind"],
-                                 "success": {label: round(r["overall"], 4) for label, r in result.items()}}),
-        args.table: success_table(result, scenes, bool(args.closed_loop), args.checkpoint, where)
-                     + failure_sections(bool(args.closed_loop), diagnostics, per_episode)})
-    journal.close()
+    cfg = parse_args(argv)
+    result = run_replay(cfg)
     for label, r in result.items():
-        print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} {'scenes' if args.scenes else 'episodes'}")
+        print(f"{label}: success {100 * r['overall']:.0f}% over {r['n']} {'scenes' if cfg.scenes else 'episodes'}")
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(run_cli("adlpipe.replay", main))

@@ -31,29 +31,22 @@ alone conditions the model (the seed's Franka Kitchen setting).
 
 from __future__ import annotations
 
-import argparse
-import contextlib
-import shutil
 import sys
 from pathlib import Path
 
-import torch
-
-from .dataset import schema
-from .dataset.loader import OPEN_FILES, STATE_DIM
-from .plumbing.cli import NON_NEGATIVE, POSITIVE, SEED, Parser, float_range, int_range
+from .dataset.loader import OPEN_FILES
+from .plumbing.cli import NON_NEGATIVE, POSITIVE, SEED, Parser, config_from, float_range, int_range
 from .plumbing.dvc_outputs import refuse_pipeline_outputs
-from .plumbing.errors import AdlError, run_cli
-from .plumbing.lock import exclusive
-from .plumbing.runtime import add_device_args, barrier, process_group, resolve_device
-from .policy.models import MODELS, PRESET_LR, PRESETS, ModelConfig, preset
+from .plumbing.errors import run_cli
+from .plumbing.runtime import add_device_args
+from .policy.models import MODELS, PRESETS
 from .policy.nets.resnet import POOLS
 from .policy.optim import WARMUP_STEPS
-from .training.data import stream_sizes
-from .training.loop import check_resume_dir, train
+from .training.run import TrainConfig, run_training
 
 
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None) -> TrainConfig:
+    """The options as the run's configuration, its outputs checked (not a DVC stage's unless --force)."""
     p = Parser("python -m adlpipe.train", __doc__)
     p.add_argument("--model", required=True, choices=sorted(MODELS))
     p.add_argument("--data", type=Path, default=Path("data/adl.h5"))
@@ -145,82 +138,25 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_force()
     p.io(inputs=["data", "split"], outputs=["out", "log"],
          implied=lambda a: [a.data.with_name("split.json")] if a.split is None else [])
-    return p.parse_args(argv)
-
-
-def model_config(args: argparse.Namespace) -> ModelConfig:
-    """The model's configuration from the preset, the options and the data (its horizon, its streams' sizes)."""
-    overrides = {"use_depth": args.depth, "pool": args.pool, "crop": args.crop, "per_frame": args.per_frame}
-    if args.image_size:
-        overrides["image_size"] = args.image_size
-    with schema.open_dataset(args.data, names=[]) as f:  # train() checks the split's episodes
-        horizon = int(f.attrs["n_waypoints"])
-    if args.closed_loop:
-        if args.action_steps % 4:
-            raise AdlError(f"--action-steps {args.action_steps}: the U-Net needs a multiple of 4")
-        horizon = args.action_steps
-        overrides.update(n_obs=args.obs_frames, rate_hz=args.rate_hz, state_dim=STATE_DIM * args.obs_frames,
-                         use_image=not args.no_image, target=args.target)
-        if args.target == "action":
-            state_dim, action_dim = stream_sizes(args.data)
-            overrides.update(target="action", action_dim=action_dim, state_dim=state_dim * args.obs_frames)
-    elif args.no_image:
-        raise AdlError("--no-image needs --closed-loop: a first-frame model has no state input")
-    if args.cameras:
-        if args.closed_loop and args.no_image:
-            raise AdlError("--cameras with --no-image: a state-only model sees no camera")
-        if len(set(args.cameras)) < len(args.cameras):
-            raise AdlError(f"--cameras {' '.join(args.cameras)}: a camera is named twice")
-        overrides["cameras"] = tuple(args.cameras)
-    elif horizon % 4:  # the U-Net halves the sequence twice; the transformers take any length
-        raise AdlError(f"{args.data}: {horizon} waypoints per trajectory; the models need a multiple of 4 "
-                       "(re-ingest with --waypoints 32)")
-    overrides["horizon"] = horizon
-    cfg = preset(args.config, args.model, **overrides)
-    if cfg.crop and cfg.crop >= cfg.image_size:
-        raise AdlError(f"--crop {cfg.crop}: not smaller than the {cfg.image_size} px input (--image-size)")
-    return cfg
+    args = p.parse_args(argv)
+    c = config_from(args, TrainConfig, split=args.split or args.data.with_name("split.json"),
+                    out=args.out or Path("models") / args.model)
+    refuse_pipeline_outputs([c.out, c.log], args.force)
+    return c
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    device = resolve_device(args.device)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    out = args.out or Path("models") / args.model
-    refuse_pipeline_outputs([out, args.log], args.force)
-    cfg = model_config(args)
-    split = args.split or args.data.with_name("split.json")
-    lr = args.lr if args.lr is not None else PRESET_LR[args.config]
-    if args.resume_dir is not None and args.resume_dir.resolve() == out.resolve():
-        args.resume_dir = None  # the default: checkpoints in --out
-    if args.resume_dir is not None:
-        check_resume_dir(args.resume_dir, out, [args.data, split, *([args.log] if args.log else [])])
-    with process_group(device) as ranks:  # under torchrun: one process per GPU (or CPU share), rank 0 writes
-        with exclusive(out) if ranks.main else contextlib.nullcontext():
-            if args.restart and ranks.main:
-                for name in ("last.pt", "best.pt"):
-                    ((args.resume_dir or out) / name).unlink(missing_ok=True)
-                shutil.rmtree((args.resume_dir or out) / "checkpoints", ignore_errors=True)
-            barrier(ranks)  # no process reads a checkpoint that --restart is about to remove
-            m = train(args.data, split, out, cfg, args.epochs, args.batch_size, lr, args.weight_decay,
-                      args.warmup_steps, args.grad_clip, args.seed, args.log or out / "log.csv", progress=True,
-                      val_fraction=args.val_fraction, val_every=args.val_every, augment=not args.no_augment,
-                      workers=args.workers, device=device, precision=args.precision, ranks=ranks,
-                      windows_per_epoch=args.windows_per_epoch, save_every=args.save_every,
-                      open_files=args.open_files, resume_dir=args.resume_dir, init=args.init,
-                      corrections_only=args.corrections_only, steps=args.steps,
-                      stop_floor=args.stop_when_converged)
-    if not ranks.main:
+    c = parse_args(argv)
+    cfg, m = run_training(c)
+    if m is None:  # not rank 0: it wrote nothing
         return 0
     val = (f", val px best {m['val_px_best']:.2f} (epoch {m['best_epoch']}) last {m['val_px_last']:.2f}"
            f"{'' if m['converged'] else ', NOT CONVERGED'}" if m["val_px_best"] is not None else "")
-    stopped = f" (converged: stopped at {m['epochs']} of {args.epochs})" if "stopped_converged_at" in m else ""
-    print(f"{out}: {cfg.model} trained {m['epochs']} epochs{stopped} ({m['optimizer_steps']} steps) in "
+    stopped = f" (converged: stopped at {m['epochs']} of {c.epochs})" if "stopped_converged_at" in m else ""
+    print(f"{c.out}: {cfg.model} trained {m['epochs']} epochs{stopped} ({m['optimizer_steps']} steps) in "
           f"{m['seconds']:.0f} s, "
           f"train loss {m['train_loss']:.4f}, test loss {m['test_loss']:.4f}{val}")
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(run_cli("adlpipe.train", main))

@@ -5,8 +5,6 @@ other camera, and the blind baseline's rows."""
 
 from __future__ import annotations
 
-import argparse
-import json
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -17,10 +15,9 @@ from ..dataset import schema
 from ..dataset.loader import Normalizer, TrajectoryDataset, check_cameras
 from ..geometry.camera import project
 from ..plumbing.errors import AdlError
-from ..plumbing.journal import Journal
 from ..plumbing.runtime import Placement
 from ..policy.blind import BLIND, blind_predictions, task_means
-from ..policy.checkpoint import CHECKPOINTS, load_policy
+from ..policy.checkpoint import load_policy
 from ..policy.inference import latency_samples_ms, predict
 from ..policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
 from .metrics import commitment, waypoint_errors
@@ -200,40 +197,3 @@ def blind_rows(data: Path, split: dict, image_px: int, k: int) -> dict:
            "image_px": image_px, "input_px": 0, **error_figures(px, cm, px, cm, tasks, k, image_px),
            **mode_figures([], {}, tasks), "ms": 0.0, "ms_ci": None}
     return {"task_mean/1": row}
-
-
-def _training_metrics(model_dir: Path) -> dict:
-    """What training wrote (val px, convergence, optimiser steps); empty if it is not there."""
-    try:
-        return json.loads((model_dir / "metrics.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
-
-
-def evaluate_models(args: argparse.Namespace, journal: Journal, test: list[str], image_px: int,
-                    modes: dict[int, torch.Tensor], placement: Placement) -> tuple[dict[str, dict], dict[str, dict]]:
-    """(model -> {"best": rows, "last": rows}, model -> what training wrote); a model the journal holds (a killed
-    run had finished it) is taken from it, every other one goes into it once evaluated."""
-    results: dict[str, dict] = {}
-    training: dict[str, dict] = {}
-    methods = {"fm": args.fm_methods, "ddpm": args.dp_methods}
-    for d in args.models:
-        if str(d) in journal.done:
-            training[d.name], results[d.name] = journal.done[str(d)]["training"], journal.done[str(d)]["results"]
-            continue
-        training[d.name] = _training_metrics(d)
-        last = evaluate_model(d, args.data, test, args.steps, methods, args.best_of, args.repeats,
-                              args.seed, image_px, placement=placement, modes=modes)
-        t = training[d.name]
-        if t and t.get("best_epoch") == t.get("epochs"):
-            best = last  # the best validation epoch was the last: best.pt holds model.pt's weights
-        else:
-            best = evaluate_model(d, args.data, test, args.steps, methods, args.best_of, args.repeats,
-                                  args.seed, image_px, CHECKPOINTS["best"], timings=last, placement=placement,
-                                  modes=modes)
-        results[d.name] = {"best": best, "last": last}
-        journal.add(str(d), {"training": training[d.name], "results": results[d.name]})
-        top = min(best.values(), key=lambda r: r["px"])
-        print(f"{d.name}: best checkpoint {top['px']:.2f} px / {top['cm']:.2f} cm ({top['method']}, "
-              f"{top['steps']} steps){'' if training[d.name].get('converged') else ', not converged'}")
-    return results, training

@@ -4,9 +4,9 @@ score with its bootstrap interval, success with Wilson's; the seed's best and la
 
 from __future__ import annotations
 
-import argparse
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -15,11 +15,40 @@ import torch
 
 from ..dataset.loader import Normalizer, normalize_state, observation_from_arrays
 from ..envs.registry import BENCHMARKS, Benchmark
+from ..plumbing.atomic import json_text, write_all_atomic
 from ..plumbing.errors import AdlError
 from ..plumbing.runtime import Placement
 from ..policy.checkpoint import CHECKPOINTS, load_policy
 from ..policy.models import MODELS
+from .benchmark_tables import plot_curves, table
 from .stats import mean_interval, success_interval
+
+FIRST_SEED = 100_000
+
+
+@dataclass(frozen=True)
+class BenchmarkConfig:
+    """What `adlpipe benchmark` was asked (its options, one field each: `adlpipe benchmark --help` says what each
+    does); the output paths as the stage defaults them from the environment's name."""
+
+    env: str
+    models: list[Path]
+    metrics: Path
+    details: Path
+    table: Path
+    curve_plot: Path | None = None  # with curve
+    steps: list[int] | None = None  # None: [2, 16]
+    dp_sampler: str = "ddpm"
+    max_steps: int | None = None  # None: the environment's limit
+    checkpoints: list[str] | None = None  # None: best and last
+    episodes: int = 50
+    seed: int = FIRST_SEED
+    execute: int = 8
+    workers: int = 2
+    curve: bool = False
+    curve_steps: int = 16
+    curve_episodes: int | None = None
+    reference_episodes: int | None = None
 
 
 @lru_cache(maxsize=8)
@@ -123,38 +152,70 @@ def curve_checkpoints(d: Path) -> list[tuple[int, Path]]:
     return found
 
 
-def episode_jobs(args: argparse.Namespace, bench: Benchmark) -> tuple[list[tuple], list[tuple]]:
+def episode_jobs(c: BenchmarkConfig, bench: Benchmark) -> tuple[list[tuple], list[tuple]]:
     """(every model's episodes at each step count and checkpoint, those of its checkpoints along training)."""
     jobs, curve_jobs = [], []
-    for d, name in zip(args.models, model_labels(args.models), strict=True):
+    for d, name in zip(c.models, model_labels(c.models), strict=True):
         cfg = check_model(d, bench)
-        method = args.dp_sampler if MODELS[cfg["model"]][0].startswith("ddpm") else None
+        method = c.dp_sampler if MODELS[cfg["model"]][0].startswith("ddpm") else None
         bc = cfg["model"].startswith("bc_")
-        for steps in ([1] if bc else args.steps):
-            jobs += [(args.env, name, ck, str(d / CHECKPOINTS[ck]), steps, method, args.seed + i, args.execute,
-                      args.max_steps) for ck in args.checkpoints for i in range(args.episodes)]
-        if args.curve:
-            steps = 1 if bc else args.curve_steps
-            curve_jobs += [(args.env, name, n, str(path), steps, method, args.seed + i, args.execute,
-                            args.max_steps)
+        for steps in ([1] if bc else c.steps):
+            jobs += [(c.env, name, ck, str(d / CHECKPOINTS[ck]), steps, method, c.seed + i, c.execute,
+                      c.max_steps) for ck in c.checkpoints for i in range(c.episodes)]
+        if c.curve:
+            steps = 1 if bc else c.curve_steps
+            curve_jobs += [(c.env, name, n, str(path), steps, method, c.seed + i, c.execute,
+                            c.max_steps)
                            for n, path in curve_checkpoints(d)
-                           for i in range(args.curve_episodes or args.episodes)]  # checkpoint: its step
+                           for i in range(c.curve_episodes or c.episodes)]  # checkpoint: its step
     return jobs, curve_jobs
 
 
-def run_episodes(args: argparse.Namespace, bench: Benchmark, jobs: list[tuple],
+def run_episodes(c: BenchmarkConfig, bench: Benchmark, jobs: list[tuple],
                  curve_jobs: list[tuple]) -> tuple[dict, dict, dict]:
     """(per (model, steps, checkpoint): episodes, per (model, steps): step -> episodes, per reference: episodes)."""
     per: dict = {}
     along: dict = {}
     ref_eps: dict = {}
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+    with ProcessPoolExecutor(max_workers=c.workers) as pool:
         for label, ck, steps, episode in pool.map(_episode, jobs):
             per.setdefault((label, steps, ck), []).append(episode)
         for label, step, steps, episode in pool.map(_episode, curve_jobs):
             along.setdefault((label, steps), {}).setdefault(step, []).append(episode)
-        ref_jobs = [(args.env, kind, args.seed + i) for kind in bench.env().REFERENCES
-                    for i in range(min(args.reference_episodes or args.episodes, args.episodes))]
+        ref_jobs = [(c.env, kind, c.seed + i) for kind in bench.env().REFERENCES
+                    for i in range(min(c.reference_episodes or c.episodes, c.episodes))]
         for kind, episode in pool.map(_reference, ref_jobs):
             ref_eps.setdefault(kind, []).append(episode)
     return per, along, ref_eps
+
+
+def run_benchmark(c: BenchmarkConfig) -> tuple[dict, dict]:
+    """Run every model of `c` (and the environment's references) and write the metrics, details, table and
+    curve plot: the rows (model, steps, checkpoint) -> summary and the curves (model, steps) -> summary."""
+    bench = BENCHMARKS[c.env]
+    max_steps = c.max_steps or bench.max_steps  # the environment's limit unless --max-steps
+    c = replace(c, max_steps=max_steps, steps=c.steps or [2, 16], checkpoints=c.checkpoints or ["best", "last"])
+    bench.env().make_env().close()  # the optional extra's absence: one line
+    per, along, ref_eps = run_episodes(c, bench, *episode_jobs(c, bench))
+    refs = {k: summary(eps, bench.tasks) for k, eps in ref_eps.items()}
+    rows = {key: {**summary(eps, bench.tasks), "ms": float(np.median([e["ms"] for e in eps]))}
+            for key, eps in per.items()}
+    curves = {key: curve_summary(sorted(by_step.items())) for key, by_step in along.items()}
+    headline = {f"{m}/{s}/{ck}": {"score": round(r["score"], 3), "success": round(r["success"], 3)}
+                for (m, s, ck), r in rows.items()}
+    headline.update({f"{m}/{s}/curve": {"score_max": round(cv["max"]["score"], 3),
+                                        "score_last3": round(cv["last"]["score"], 3)}
+                     for (m, s), cv in curves.items()})
+    write_all_atomic({
+        c.metrics: json_text(headline),
+        c.details: json_text({"env": c.env, "episodes": c.episodes, "first_seed": c.seed,
+                              "execute": c.execute, "max_steps": max_steps,
+                              "results": [{"model": m, "steps": s, "checkpoint": ck, **r,
+                                           "per_episode": per[(m, s, ck)]} for (m, s, ck), r in rows.items()],
+                              "curves": [{"model": m, "steps": s, "episodes": c.curve_episodes or c.episodes, **cv}
+                                         for (m, s), cv in curves.items()],
+                              "references": {k: {**refs[k], "per_episode": ref_eps[k]} for k in refs}}),
+        c.table: table(bench, rows, refs, c.episodes, c.execute, c.seed, max_steps, curves)})
+    if c.curve_plot:
+        plot_curves(curves, refs, c.curve_plot, bench.title)
+    return rows, curves

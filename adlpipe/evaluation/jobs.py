@@ -8,14 +8,14 @@ from collections import Counter, defaultdict
 import numpy as np
 from tqdm import tqdm
 
-from ..plumbing.journal import Journal
+from ..plumbing.journal import Journal, Section
 from ..plumbing.runtime import Placement
 from ..plumbing.workers import stoppable_pool
 from .stats import success_interval
 
 
 def run_jobs(worker, jobs: list[tuple], workers: int, placement: Placement,  # noqa: ANN001
-             journal: Journal | None = None) -> tuple[dict, dict, dict]:
+             journal: Journal | Section | None = None) -> tuple[dict, dict, dict]:
     """(label -> task -> outcomes, label -> scene -> success, label -> scene -> diagnosis). Each label's outcomes
     go into the journal as soon as its last job is in; a label the journal holds is not run again."""
     order = list(dict.fromkeys(job[0] for job in jobs))

@@ -28,9 +28,9 @@ from typing import Any
 
 from ..bags.reader import BagSource
 from ..bags.topics import OUTCOME, POLICY
-from ..plumbing.errors import AdlError
+from ..plumbing.errors import AdlError, read_json_object
 from ..sim.tasks import FORCE_LIMIT_N
-from .decision import Rule, apply_rule
+from .decision import Rule, apply_rule, policies_of
 from .sequential import PairedComparison
 
 TRUE, FALSE = {"1", "true", "yes", "y", "success"}, {"0", "false", "no", "n", "failure", "fail"}
@@ -253,11 +253,66 @@ class TrialSeries:
         return decision, None if not left else min(left, key=lambda p: (len(self.ok[p]), names.index(p)))
 
 
-def decide_trials(trials: list[Trial], latency_ms: dict[str, float | None], rule: Rule,
-                  policies: list[str] | None = None) -> tuple[dict, str | None]:
-    """The rule on the trials so far (each policy's k-th trial paired with the others' k-th), and the policy to
-    run next (None once decided): the candidate with the fewest trials, in the order policies first appeared."""
-    series = TrialSeries(latency_ms, rule, [*(policies or []), *(t.policy for t in trials)])
-    for t in trials:
+@dataclass(frozen=True)
+class TrialsConfig:
+    """What `adlpipe trials` was asked (its options, one field each: `adlpipe trials --help` says what each does)."""
+
+    inputs: list[Path]
+    policies: list[str] | None = None
+    eval_details: Path | None = None  # evaluate's details: each policy's latency
+    latency: list[str] | None = None  # POLICY=MS, over eval_details'
+    margin: float = 0.05
+    alpha: float = 0.05
+
+
+def latencies(c: TrialsConfig) -> dict[str, float | None]:
+    """Each policy's latency in ms: evaluate's details, then --latency POLICY=MS over them."""
+    out: dict[str, float | None] = dict(policies_of(read_json_object(c.eval_details, "evaluate details", "models"))
+                                        if c.eval_details else {})
+    for item in c.latency or []:
+        name, _, ms = item.partition("=")
+        try:
+            value = float(ms)
+        except ValueError:
+            raise AdlError(f"--latency {item!r}: expected POLICY=MS, e.g. fm_cnn=3.5") from None
+        if not name.strip() or not math.isfinite(value) or value < 0:
+            raise AdlError(f"--latency {item!r}: expected POLICY=MS with a policy name and a finite ms >= 0")
+        out[name.strip()] = value
+    return out
+
+
+def check_names(c: TrialsConfig, trials: list[Trial]) -> None:
+    """--policies without empty names, --latency only for policies under trial."""
+    if c.policies and not all(p.strip() for p in c.policies):
+        raise AdlError("--policies: an empty policy name")
+    known = set(c.policies or []) | {t.policy for t in trials}
+    unknown = [p for p in (item.partition("=")[0].strip() for item in c.latency or []) if p not in known]
+    if unknown:
+        raise AdlError(f"--latency {unknown[0]}: no such policy among the trials ({', '.join(sorted(known))})")
+
+
+def run_trials(c: TrialsConfig) -> tuple[list[str], dict]:
+    """The rule after every trial, in the order the trials were run, until it decides: what to print (a line per
+    trial read, then the decision's lines) and the decision as a document (`next`: the policy to run next, None
+    once decided)."""
+    trials = read_trials(c.inputs)
+    if not trials:
+        raise AdlError(f"{', '.join(map(str, c.inputs))}: no trials")
+    latency = latencies(c)
+    check_names(c, trials)
+    decision: dict = {}
+    nxt: str | None = None
+    said = []
+    series = TrialSeries(latency, Rule(c.margin, c.alpha), c.policies)  # updated trial by trial: linear in the trials
+    for i, t in enumerate(trials, start=1):
         series.add(t)
-    return series.decision()
+        decision, nxt = series.decision()
+        what = (f"stop: {decision['recommended']}" if nxt is None else f"continue: run {nxt} next")
+        said.append(f"trial {i} ({t.policy}: {'success' if t.success else 'failure'}"
+                    + (f", {t.force_n:.1f} N" if t.force_n is not None else "") + f"): {what}")
+        if nxt is None:
+            if i < len(trials):
+                said.append(f"decided after trial {i}; the {len(trials) - i} later trial(s) are not needed for it")
+            break
+    said += decision["lines"]
+    return said, {**{k: v for k, v in decision.items() if k != "lines"}, "next": nxt, "trials": len(trials)}

@@ -8,11 +8,14 @@ import math
 import os
 import sys
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import fields
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn, TypeVar
 
 from .atomic import refuse_special_outputs
 from .errors import AdlError
+
+C = TypeVar("C")
 
 
 class Parser(argparse.ArgumentParser):
@@ -142,3 +145,11 @@ def read_token_file(path: Path) -> str:
     if not token:
         raise AdlError(f"--token-file {path}: empty")
     return token
+
+
+def config_from(args: argparse.Namespace, config: type[C], **given: Any) -> C:
+    """The stage's typed configuration (a dataclass) from its parsed options: each field from the option of the same
+    name, or from `given` (a field the stage derives: a default path, the device placement). Built once, in the
+    stage; nothing below it sees the namespace."""
+    names = [f.name for f in fields(config)]  # type: ignore[arg-type]
+    return config(**{n: given[n] if n in given else getattr(args, n) for n in names})

@@ -8,7 +8,6 @@ kill cut short is not read (each line is one JSON document, flushed and synced b
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import os
@@ -20,11 +19,12 @@ from .errors import AdlError
 NOT_FIGURES = ("force", "workers", "threads", "metrics", "details", "plots", "table", "failures")
 
 
-def fingerprint(args: argparse.Namespace, checkpoints: list[Path], split: Path, data: Path) -> str:
-    """What a stage's figures depend on. The dataset's file by size and modification time (hashing a large
-    dataset would cost more than most parts), the split and the checkpoints by content."""
+def fingerprint(options: object, checkpoints: list[Path], split: Path, data: Path) -> str:
+    """What a stage's figures depend on: its options (a configuration dataclass or parsed arguments, by field), the
+    dataset's file by size and modification time (hashing a large dataset would cost more than most parts), the
+    split and the checkpoints by content."""
     st = data.stat()
-    what = {"args": {k: v for k, v in sorted(vars(args).items()) if k not in NOT_FIGURES},
+    what = {"args": {k: v for k, v in sorted(vars(options).items()) if k not in NOT_FIGURES},
             "split": sha256_of(split), "data": [str(data.resolve()), st.st_size, st.st_mtime_ns],
             "checkpoints": {str(p): sha256_of(p) for p in checkpoints if p.exists()}}
     return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()
