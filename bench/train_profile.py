@@ -131,13 +131,11 @@ def main() -> None:
                   f"{r['checkpoint_ms']} ms, epoch {r['epoch_s']} s, validation {r['validation_s']} s, "
                   f"800 epochs {r['run_800_epochs_s']} s", flush=True)
     if a.out:
-        import platform
-
         import torch
-        host = {"cpu": platform.processor() or platform.machine(), "cores": __import__("os").cpu_count(),
-                "torch": torch.__version__}
+
+        from adlpipe.plumbing.runtime import host
         a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps({"host": host, "runs": runs}, indent=1) + "\n")
+        a.out.write_text(json.dumps({"host": host(torch.device("cpu")), "runs": runs}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

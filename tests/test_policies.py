@@ -383,6 +383,33 @@ def test_a_flat_but_far_worse_baseline_is_no_finding() -> None:
     assert "the paper's pair" not in near  # only the pairs that were trained
 
 
+def test_the_speed_claim_is_judged_on_the_sampler_and_the_plan_stated_per_host():
+    """The two hosts of the issue: the same kind of checkpoints, 10.4x on one and 7.3x on the other for the whole
+    plan, because the encoder (shared by FM and DP) weighs more on the slower host. The sampler's ratio (1 vs 16
+    network evaluations) is about 16x on both, so the verdict holds on both; the plan's ratio is stated per host."""
+    from adlpipe.evaluation.claims import claims
+
+    def ev(encoder_ms: float, unet_ms: float, cpu: str) -> dict:
+        def row(evals: int) -> dict:
+            sampler = evals * unet_ms
+            return {"px": 2.0, "px224": 3.5, "evaluations": evals, "ms": encoder_ms + sampler,
+                    "ms_ci": [0.98 * (encoder_ms + sampler), 1.02 * (encoder_ms + sampler)],
+                    "encoder_ms": encoder_ms, "encoder_ms_ci": [0.98 * encoder_ms, 1.02 * encoder_ms],
+                    "sampler_ms": sampler, "sampler_ms_ci": [0.98 * sampler, 1.02 * sampler]}
+        models = {"fm_cnn": {"best": {"euler/1": row(1), "euler/16": row(16)}},
+                  "dp_cnn": {"best": {"ddpm/16": row(16)}}, "bc_cnn": {"best": {"direct/1": row(1)}}}
+        return {"models": models, "training": {m: {"converged": True} for m in models},
+                "host": {"cpu": cpu, "torch_threads": 2}}
+
+    fast = next(c for c in claims(ev(1.1, 1.89, "host A"), {}) if "much faster" in c)  # 3.0 vs 31.3 ms
+    slow = next(c for c in claims(ev(7.17, 5.23, "host B"), {}) if "much faster" in c)  # 12.4 vs 90.9 ms
+    for line in (fast, slow):
+        assert "**supported** on the sampler (1 vs 16 network evaluations" in line and "16.0x" in line
+    assert "(10.5x [10.1, 10.9]: supported on host A, 2 torch threads)" in fast
+    assert "(7.3x [7.0, 7.6]: contradicted on host B, 2 torch threads)" in slow
+    assert "the encoder is 58 % of FM-1's plan" in slow
+
+
 def test_claims_rest_on_the_paired_interval_of_per_episode_errors() -> None:
     """Q.2: with per-episode errors the claim is supported only when the paired bootstrap interval of the
     difference excludes zero the claimed way, contradicted when it excludes it the other way, else not resolved,

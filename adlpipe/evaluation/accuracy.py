@@ -18,7 +18,7 @@ from ..plumbing.errors import AdlError
 from ..plumbing.runtime import Placement
 from ..policy.blind import BLIND, blind_predictions, task_means
 from ..policy.checkpoint import load_policy
-from ..policy.inference import latency_samples_ms, predict
+from ..policy.inference import phase_samples_ms, predict
 from ..policy.models import DEFAULT_METHOD, DEFAULT_STEPS, MODELS
 from .metrics import commitment, waypoint_errors
 from .stats import mean_interval, median_interval, ratio_interval
@@ -108,9 +108,12 @@ def error_figures(px: torch.Tensor, cm: torch.Tensor, best_px: torch.Tensor, bes
 
 def latency_figures(policy: object, obs: torch.Tensor, steps: int, method: str, repeats: int,
                     placement: Placement) -> dict:
-    """The median ms of one prediction (batch 1) and the bootstrap interval of that median over the repeats."""
-    times = latency_samples_ms(policy, obs, steps, method, repeats, placement)
-    return {"ms": float(np.median(times)), "ms_ci": list(median_interval(times))}
+    """The median ms of one prediction (batch 1) and of its encoder and sampler parts, each with the bootstrap
+    interval of that median over the repeats."""
+    out: dict = {}
+    for key, times in phase_samples_ms(policy, obs, steps, method, repeats, placement).items():
+        out[key], out[f"{key}_ci"] = float(np.median(times)), list(median_interval(times))
+    return out
 
 
 def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: list[int],
@@ -158,7 +161,8 @@ def evaluate_model(model_dir: Path, data: Path, test: list[str], steps_list: lis
                 "evaluations": policy.objective.evaluations(steps, method), "image_px": image_px,
                 "input_px": cfg.image_size, **error_figures(px, cm, best_px, best_cm, tasks, k, image_px),
                 **mode_figures(samples, modes or {}, tasks),
-                "ms": timed["ms"], "ms_ci": timed.get("ms_ci"),
+                **{k: timed.get(k) for k in ("ms", "ms_ci", "encoder_ms", "encoder_ms_ci", "sampler_ms",
+                                             "sampler_ms_ci")},
                 **({"px_by_camera": camera_px(samples[0].numpy(), views, image_px)} if views else {}),
             }
     return rows

@@ -17,7 +17,7 @@ from ..dataset.splits import load_split
 from ..plumbing.atomic import json_text, write_all_atomic
 from ..plumbing.errors import AdlError
 from ..plumbing.journal import Journal, fingerprint
-from ..plumbing.runtime import Placement
+from ..plumbing.runtime import Placement, host
 from ..policy.blind import BLIND
 from ..policy.checkpoint import CHECKPOINTS
 from .accuracy import blind_rows, evaluate_model, reference_modes
@@ -116,7 +116,8 @@ def run_evaluation(c: EvaluateConfig) -> None:
     write_all_atomic({
         c.details: json_text({"n_test": len(split["test"]), "best_of": c.best_of, "training": training,
                               "mode_scenes": len(modes),
-                              "device": str(placement.device), "precision": placement.precision,
+                              "device": str(placement.device), "host": host(placement.device),
+                              "precision": placement.precision,
                               "compiled": placement.compile, "models": results}),
         c.metrics: json_text(headline(results, training, len(split["test"]))),
         c.plots: steps_csv(results, c.steps),

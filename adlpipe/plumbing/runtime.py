@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import platform
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -72,6 +73,19 @@ class Placement:
 
     def generator(self, seed: int) -> torch.Generator:
         return generator(self.device, seed)
+
+
+def host(device: torch.device) -> dict:
+    """The machine a timing was measured on (stated beside every latency): the CPU's model name, its cores, torch's
+    threads and version, and the GPU's name when the device is one."""
+    cpu = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError):
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    out = {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "torch": torch.__version__}
+    if device.type == "cuda":
+        out["gpu"] = torch.cuda.get_device_name(device)
+    return out
 
 
 def autocast(device: torch.device, precision: str) -> contextlib.AbstractContextManager:

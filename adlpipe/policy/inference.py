@@ -44,6 +44,33 @@ def latency_samples_ms(policy: Policy, obs: Observation, steps: int, method: str
     return times
 
 
+def phase_samples_ms(policy: Policy, obs: Observation, steps: int, method: str, repeats: int,
+                     placement: Placement | None = None) -> dict[str, list[float]]:
+    """Per repeat, the milliseconds of one prediction ("ms") and of its two parts: the encoder (the observation's
+    features, "encoder_ms") and the sampler (its `steps` network evaluations, "sampler_ms"). The encoder's share
+    is what a host changes most (an image network beside a small 1D U-Net), the sampler's count of network
+    evaluations what it cannot."""
+    placement = placement or Placement()
+    gen = placement.generator(0)
+    obs = to_device(obs, placement.device)
+    out: dict[str, list[float]] = {"ms": [], "encoder_ms": [], "sampler_ms": []}
+    with torch.no_grad(), placement.autocast():
+        for _ in range(3):  # warm-up (and, with --compile, the compilation)
+            policy.predict(obs, steps, method, gen)
+        for _ in range(repeats):
+            synchronize(placement.device)
+            t0 = time.perf_counter()
+            cond = policy.condition(obs)
+            synchronize(placement.device)
+            t1 = time.perf_counter()
+            policy.sample(cond, steps, method, gen)
+            synchronize(placement.device)
+            t2 = time.perf_counter()
+            for key, ms in (("ms", t2 - t0), ("encoder_ms", t1 - t0), ("sampler_ms", t2 - t1)):
+                out[key].append(ms * 1000.0)
+    return out
+
+
 def interleaved_latency_ms(calls: dict[object, tuple[Policy, Observation, int, str]], rounds: int,
                            placement: Placement | None = None, seed: int = 0) -> dict[object, float]:
     """Median milliseconds of each call (policy, obs, steps, method), timed in rounds: every round times every

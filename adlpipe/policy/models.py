@@ -235,7 +235,12 @@ class Policy(nn.Module):
     @torch.no_grad()
     def predict(self, obs: Observation, steps: int = 1, method: str | None = None,
                 gen: torch.Generator | None = None) -> torch.Tensor:
-        cond = self.condition(obs)
+        return self.sample(self.condition(obs), steps, method, gen)
+
+    @torch.no_grad()
+    def sample(self, cond: torch.Tensor, steps: int = 1, method: str | None = None,
+               gen: torch.Generator | None = None) -> torch.Tensor:
+        """The plan from the observation's features (condition): the sampler's `steps` network evaluations."""
         shape = (cond.shape[0], self.cfg.horizon, self.cfg.action_dim)
         out = self.objective.sample(self.net, cond, shape, steps, method or self.default_method, gen)
         return out.float()  # under bf16 autocast the last network output is bfloat16
