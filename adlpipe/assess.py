@@ -56,11 +56,11 @@ class Robots:
 
     def __init__(self, mjcf: Path | None, ee_site: str) -> None:
         self.mjcf, self.ee_site = mjcf, ee_site
-        self._cache: dict[object, tuple[Robot, dict]] = {}
+        self._cache: dict[str | None, tuple[Robot, dict]] = {}
 
     def for_task(self, task: str) -> tuple[Robot, dict]:
         if self.mjcf is not None:
-            key: object = "lab"
+            key: str | None = "lab"
         else:
             from .sim.tasks import TASKS
 

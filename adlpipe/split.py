@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         keys = recording_keys(f, list(tasks))
     if not tasks:
         raise AdlError(f"{args.data}: dataset has no {'readable ' if bad else ''}episodes")
-    split = make_split(tasks, args.test_fraction, args.seed, keys) if args.extend is None else \
+    split: dict = make_split(tasks, args.test_fraction, args.seed, keys) if args.extend is None else \
         extended_split(args.extend, list(tasks))
     split.update({"seed": args.seed, "test_fraction": args.test_fraction, "data": str(args.data)})
     if bad:

@@ -85,7 +85,7 @@ class TopicMap:
         _refuse_unknown_keys(f"{path}: unknown topic-map keys", raw, cls)
         for f in fields(cls):
             if f.name in raw:
-                _check_value(path, f.name, raw[f.name], f.type)
+                _check_value(path, f.name, raw[f.name], str(f.type))  # a string: annotations are postponed
         both = sorted({"image", "camera_info", "depth"} & set(raw)) if raw.get("cameras") is not None else []
         if both:
             raise AdlError(f"{path}: give the cameras either as image/camera_info/depth or as a cameras list, not "

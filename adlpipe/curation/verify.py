@@ -60,7 +60,8 @@ def verify_episode(g: h5py.Group, bag: Path, config: list[Path] | None, n_waypoi
     tm = topic_map_of(g, config)
     note = str(g.attrs.get("note", ""))
     segment = int(g.attrs.get("segment", -1))
-    window = tuple(int(v) for v in g.attrs["window_ns"]) if "window_ns" in g.attrs else None
+    window: tuple[int, int] | None = ((int(g.attrs["window_ns"][0]), int(g.attrs["window_ns"][1]))
+                                      if "window_ns" in g.attrs else None)
     if segment >= 0 and window is None:  # ingested before the span was kept: find the segments again
         spans = find_segments(bag, tm, None) or []
         if segment >= len(spans):

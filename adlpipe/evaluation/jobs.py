@@ -20,7 +20,7 @@ def run_jobs(worker, jobs: list[tuple], workers: int, placement: Placement,  # n
     go into the journal as soon as its last job is in; a label the journal holds is not run again."""
     order = list(dict.fromkeys(job[0] for job in jobs))
     expected = Counter(job[0] for job in jobs)
-    done = journal.done if journal else {}
+    done: dict = journal.done if journal else {}
     outcomes: dict[str, list] = {label: list(done[label]) for label in order if label in done}
     todo = [job for job in jobs if job[0] not in outcomes]
     # CUDA cannot be used in a forked child of a process that has used it: closed-loop workers on a GPU are spawned.

@@ -83,7 +83,7 @@ def scenes_to_resolve(b: int, c: int, n: int, alpha: float = 1 - LEVEL, limit: i
     return None
 
 
-def mean_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float, float]:
+def mean_interval(values: Sequence[float] | np.ndarray, level: float = LEVEL) -> tuple[float, float]:
     """The percentile bootstrap interval of the mean over episodes; the value itself when all are equal or there is
     one."""
     x = np.asarray(values, float)

@@ -94,7 +94,8 @@ def gripper_events(g: h5py.Group) -> list[tuple[float, np.ndarray]]:
 def assess(robot: Robot, samples: dict, ctx: Context, waypoints: np.ndarray, crit: Criteria) -> dict:
     """The three verdicts of one predicted trajectory (N, 3), with their figures."""
     feas = robot.feasibility(waypoints, ctx.q0, ctx.dt, crit.robot)
-    clearances, worst, worst_at = [], 0.0, None
+    clearances: list[float] = []
+    worst, worst_at = 0.0, None
     for q in feas.q:
         pts = robot.surface_points(q, samples)
         clearances.append(float(ctx.scene.clearance(pts).min()))
@@ -117,12 +118,13 @@ def assess(robot: Robot, samples: dict, ctx: Context, waypoints: np.ndarray, cri
         else:
             missed.append(what)
     safe = worst <= crit.penetration_m if ctx.seen else None
+    seen_worst = worst if ctx.seen else None  # no depth image: nothing was seen to be behind
     if not ctx.seen:
-        worst, worst_at = None, None
+        worst_at = None
     return {"feasible": feas.feasible, "why_infeasible": feas.why, "reach_m": float(feas.residual_m.max()),
             "limit_violations": feas.limit_violations, "max_joint_speed": feas.max_speed,
             "max_joint_accel": feas.max_accel, "self_collisions": feas.self_collisions,
-            "safe": safe, "penetration_m": worst, "penetration_at": worst_at,
+            "safe": safe, "penetration_m": seen_worst, "penetration_at": worst_at,
             "min_clearance_m": min(clearances) if ctx.seen else None,
             "does_what_demo_did": not missed, "key_poses": len(ctx.keys), "missed": missed,
             "pass": None if safe is None else feas.feasible and safe and not missed}

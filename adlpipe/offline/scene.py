@@ -38,7 +38,7 @@ class DepthScene:
         d = np.array(depth, np.float32)
         size = d.shape[::-1]
         if robot_points is not None and len(robot_points):
-            mask = np.zeros(d.shape, np.uint8)
+            mask: np.ndarray = np.zeros(d.shape, np.uint8)
             uv = np.round(project(robot_points, K, T_base_camera, lens, size)).astype(int)
             ok = (uv[:, 0] >= 0) & (uv[:, 0] < size[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[1])
             mask[uv[ok, 1], uv[ok, 0]] = 1

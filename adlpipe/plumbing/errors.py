@@ -84,7 +84,7 @@ def _on_sigint(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def _quiet_interrupts(unraisable: object) -> None:
+def _quiet_interrupts(unraisable: sys.UnraisableHookArgs) -> None:
     """A Ctrl-C that lands in a finaliser cannot propagate: Python prints it as a 5-8 line "Exception ignored"
     trace before the stage's one line. The flag above already holds it; anything else is printed as before."""
     if not isinstance(getattr(unraisable, "exc_value", None), KeyboardInterrupt):

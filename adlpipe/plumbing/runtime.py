@@ -11,6 +11,7 @@ import os
 import platform
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.distributed as dist
@@ -65,7 +66,7 @@ class Placement:
     compile: bool = False
 
     @classmethod
-    def from_args(cls, args: object) -> Placement:
+    def from_args(cls, args: Any) -> Placement:  # the parsed options (add_device_args)
         return cls(resolve_device(args.device), args.precision, bool(getattr(args, "compile", False)))
 
     def autocast(self) -> contextlib.AbstractContextManager:

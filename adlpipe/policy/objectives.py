@@ -142,7 +142,7 @@ class MeanFlow:
         # fused attention kernels have no forward-mode derivative: attention runs the plain math kernel here.
         with sdpa_kernel(SDPBackend.MATH):
             u, du_dt = torch.func.jvp(lambda x, tt: self.average_velocity(net, x, tt, s, cond), (xt, t),
-                                      (v, torch.ones_like(t)))
+                                      (v, torch.ones_like(t)))[:2]
         target = (v + (s - t).reshape(-1, 1, 1) * du_dt).detach()
         err = (u - target).pow(2).mean(dim=(1, 2))
         return (err / (err.detach() + self.ADAPTIVE_C)).mean()
