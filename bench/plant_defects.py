@@ -385,11 +385,42 @@ def gripper_inverted(messages: list[Message]) -> list[Message]:
     return messages
 
 
+def _shift_images(messages: list[Message], topic: str, dx: int, dtype: type) -> None:
+    """Every image of `topic` moved dx pixels to the right (np.roll: what leaves one side enters the other)."""
+    for msg in _of(messages, (topic,)):
+        a = np.frombuffer(bytes(msg.data), dtype).reshape(msg.height, msg.width, -1)
+        msg.data = np.frombuffer(np.ascontiguousarray(np.roll(a, dx, axis=1)).tobytes(), np.uint8)
+
+
+def depth_misregistered(messages: list[Message]) -> list[Message]:
+    """The depth image 8 px to the side of the colour image (a registration left off, or another camera's depth)."""
+    _shift_images(messages, DEPTH, 8, np.float32)
+    return messages
+
+
+def mirrored_image(messages: list[Message]) -> list[Message]:
+    """The colour image mirrored left-right (a driver's flip option), the depth image and the camera model kept."""
+    for msg in _of(messages):
+        msg.data = np.ascontiguousarray(_pixels(msg)[:, ::-1]).ravel()
+    return messages
+
+
+def camera_bumped(messages: list[Message]) -> list[Message]:
+    """A camera head knocked after calibration: colour and depth move by 10 and 6 px (their lenses sit apart), the
+    extrinsics unchanged."""
+    _shift_images(messages, IMAGE, 10, np.uint8)
+    _shift_images(messages, DEPTH, 6, np.float32)
+    return messages
+
+
 DEFECTS_E3: dict[str, tuple[Edit, str]] = {  # the kinds no issue had named, now checked: defect -> (edit, flag)
     "two frames swapped": (frames_swapped, "frame order"),
     "distortion k1 = 3": (nonsense_distortion, "camera lens"),
     "command 300 ms late": (command_late, "command timing"),
     "gripper inverted": (gripper_inverted, "gripper inverted"),
+    "depth misregistered 8 px": (depth_misregistered, "depth registration"),
+    "colour image mirrored": (mirrored_image, "depth registration"),
+    "camera bumped 10 / 6 px": (camera_bumped, "depth registration"),
 }
 COPIES = ("near-duplicate episode", "time-reversed copy", "near-duplicate 0.2 mm")  # planted from another bag
 

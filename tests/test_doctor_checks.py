@@ -1,6 +1,6 @@
 """The doctor's cross-modal and cross-episode checks (issue E2) on recorded bags with defects planted by the real
 writer (bench/plant_defects.py): each planted defect carries the flag that names it, the clean episodes none, with
-4 episodes per task."""
+5 episodes per task."""
 
 from __future__ import annotations
 
@@ -30,13 +30,16 @@ PLANTED = {  # bag -> (defect, the flag that must name it)
     "cover_the_food_0002.mcap": ("distortion k1 = 3", "camera lens"),
     "brush_the_teeth_0002.mcap": ("command 300 ms late", "command timing"),
     "wipe_the_nose_0002.mcap": ("gripper inverted", "gripper inverted"),
+    "pass_the_water_0003.mcap": ("depth misregistered 8 px", "depth registration"),
+    "cover_the_food_0003.mcap": ("colour image mirrored", "depth registration"),
+    "wipe_the_nose_0003.mcap": ("camera bumped 10 / 6 px", "depth registration"),
 }
 
 
 @pytest.fixture(scope="module")
 def doctored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
     root = tmp_path_factory.mktemp("doctor_checks")
-    run_module("record", "--episodes", "4", "--tasks", *TASKS, "--size", "48", "--camera-hz", "10", "--out",
+    run_module("record", "--episodes", "5", "--tasks", *TASKS, "--size", "48", "--camera-hz", "10", "--out",
                root / "clean", "--seed", "3", check=True)
     (root / "bags").mkdir()
     for bag in sorted((root / "clean").glob("*.mcap")):
@@ -54,11 +57,11 @@ def doctored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
 
 
 def test_each_planted_defect_is_named_and_no_clean_episode_is_flagged(doctored: dict[str, list[str]]) -> None:
-    assert len(doctored) == 16
+    assert len(doctored) == 20
     for bag, (defect, flag) in PLANTED.items():
         assert flag in doctored[bag], (defect, doctored[bag])
     clean = {bag: flags for bag, flags in doctored.items() if bag not in PLANTED}
-    assert len(clean) == 4 and not any(clean.values()), clean
+    assert len(clean) == 5 and not any(clean.values()), clean
 
 
 @pytest.mark.parametrize("frames", [1, 2])

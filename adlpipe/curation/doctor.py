@@ -29,6 +29,7 @@ from .doctor_checks import (
     joint_units,
     lens_figures,
     path_signature,
+    registration,
 )
 from .doctor_signals import action_figures, chatter, joint_figures, near_duplicates, non_finite_notes, signature
 
@@ -77,6 +78,9 @@ class Limits:
     #                               (at a correlation of clock_min_r or more): the command's values or stamps late
     frame_swap: float = 0.9  # the image change in the stored order over that with two frames swapped back below
     #                          this: two frames stored in the wrong order
+    registration_share: float = 0.03  # depth edges matching the colour edges this share of the image's width or
+    #                                   more to the side: depth misregistered, an image mirrored, or a camera moved
+    #                                   (200 clean at 128 px, 20 at 48 px: all at no shift; mirrored: 11 px or more)
     # doctor_checks: against the dataset's medians (3 episodes per task are enough)
     colour_off: float = 0.05  # mean colour this far (sum over R G B, 0-1) from the dataset's ...
     swap_gain: float = 0.5  # ... and red and blue swapped this much nearer to it: BGR stored as RGB (the same
@@ -117,6 +121,7 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits()) -> dict:
     fig.update(camera_figures(g))
     fig.update(lens_figures(g))
     fig.update(image_figures(fr))
+    fig.update(registration(g))
     fig.update(joint_units(g))
     fig["end_speed_mps"] = end_speed(ee_t, ee_pos, duration)
     fig.update(frame_figures(g, ee_t, ee_pos))
@@ -274,6 +279,11 @@ def unit_flags(fig: dict, limits: Limits) -> list[str]:
                    f"{fig['lens_shift']:.0%} of their distance from the principal point (limit "
                    f"{limits.lens_shift:.0%}){' and folds back inside it' if fig['lens_folds'] else ''}: "
                    "camera_info distortion coefficients of no real lens?")
+    shift, width = fig["registration_px"], fig["image_px"]
+    if shift is not None and shift > limits.registration_share * width:
+        out.append(f"depth registration: the depth image's edges match the colour image's {shift:.0f} px to the side "
+                   f"(limit {limits.registration_share:.0%} of {width} px): depth offset from colour, an image "
+                   "mirrored, or a camera moved after calibration?")
     if fig["order_ratio"] is not None and fig["order_ratio"] < limits.frame_swap:
         out.append(f"frame order: the frames at {fig['order_at_s']:.2f} s change the image {fig['order_ratio']:.2f}x "
                    f"as much swapped back as stored (limit {limits.frame_swap}): two frames stored out of order?")
