@@ -350,11 +350,22 @@ def test_latency_costs_a_holding_arm_what_an_async_arm_keeps(closed_loop_model, 
 
 
 def test_the_example_plans_with_the_public_api(closed_loop_model, ingested: Path) -> None:
-    proc = subprocess.run([sys.executable, str(REPO / "examples" / "plan_one_observation.py"),
+    proc = subprocess.run([sys.executable, str(REPO / "examples" / "03_plan_one_observation.py"),
                            str(closed_loop_model[1]), str(ingested)], capture_output=True, text=True, timeout=120,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
     assert proc.returncode == 0, proc.stderr
     assert "16 waypoints" in proc.stdout
+
+
+def test_the_robot_client_example_plans_through_the_server(served, tmp_path: Path) -> None:
+    """examples/06_robot_client.py: a robot's loop against a running `adlpipe serve`, with its token."""
+    _, url, token, _, _ = served
+    (tmp_path / "token").write_text(token + "\n")
+    proc = subprocess.run([sys.executable, str(REPO / "examples" / "06_robot_client.py"), url, "--token-file",
+                           str(tmp_path / "token"), "--plans", "2"], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == 0, proc.stderr
+    assert "serving fm_cnn" in proc.stdout and proc.stdout.count("plan: ") == 2
 
 
 def test_the_latency_table_pairs_each_row_with_no_latency_on_the_same_scenes() -> None:

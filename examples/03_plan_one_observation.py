@@ -1,8 +1,8 @@
 """Plan from one observation with the public API: a trained closed-loop model, the frames of a recorded episode as a
 robot would send them, waypoints in the robot's base frame.
 
-    python examples/plan_one_observation.py pipelines/closed_loop/models/fm_cnn data/adl.h5
-    python examples/plan_one_observation.py models/fm_cnn data/adl.h5 --device cuda
+    python examples/03_plan_one_observation.py pipelines/closed_loop/models/fm_cnn data/adl.h5
+    python examples/03_plan_one_observation.py models/fm_cnn data/adl.h5 --device cuda
 
 A first-frame model (the default pipeline's fm_cnn) plans the whole trajectory, timed at the task's demonstrated
 speed: give the planner those speeds (adlpipe.serve.task_speeds reads them from the dataset and its split).

@@ -1,7 +1,7 @@
 """A robot's side of `adlpipe serve`, in a few lines and without torch: numpy, msgpack and websockets.
 
     adlpipe serve pipelines/closed_loop/models/fm_cnn --host 0.0.0.0 --token-file token.txt   # on the GPU box
-    python examples/robot_client.py ws://gpu-box:8765 --token-file token.txt                  # on the robot
+    python examples/06_robot_client.py ws://gpu-box:8765 --token-file token.txt                  # on the robot
 
 The loop a closed-loop policy runs: observe, plan, execute the first Ta waypoints, observe again. `Robot` below is
 where a lab's own drivers go; here it only makes up frames so that the example runs anywhere.
