@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .curation import doctor
+from .offline.robot import Robot
 from .plumbing.atomic import check_outputs, json_text, write_all_atomic
 from .plumbing.cli import Parser, float_range
 from .plumbing.errors import AdlError, run_cli
@@ -85,7 +86,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", type=Path, action="append",
                    help="with --verify: the topic map to read the bags with (default: the one each episode was "
                    "ingested with)")
-    p.io(inputs=["data", "verify", "config"], outputs=["json", "png"],
+    p.add_argument("--robot-mjcf", type=Path,
+                   help="the robot's MuJoCo model: its forward kinematics from the recorded joints is checked against "
+                   "the tf end effector (joint names, order, units); default: not checked")
+    p.add_argument("--ee-site", default="tcp", help="with --robot-mjcf: the model's end-effector site (default tcp)")
+    p.io(inputs=["data", "verify", "config", "robot_mjcf"], outputs=["json", "png"],
          implied=lambda a: [a.data.with_name("split.json")])  # the split beside it is part of the dataset
     args = p.parse_args(argv)
     outputs = [o for o in (args.json, args.png) if o]
@@ -104,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.data}: {checked} episode(s) verified against their bags, {len(lines)} mismatch(es)")
         return 1 if lines else 0
     limits = doctor.Limits(idle_s=args.idle_s, max_speed_mps=args.max_speed)
-    figs = doctor.examine(str(args.data), args.episodes, limits)
+    robot = Robot(path=args.robot_mjcf, ee_site=args.ee_site) if args.robot_mjcf else None
+    figs = doctor.examine(str(args.data), args.episodes, limits, robot)
     print(doctor.summary_table(figs), end="")
     for line in doctor.flag_lines(figs):
         print(line)

@@ -413,6 +413,15 @@ def camera_bumped(messages: list[Message]) -> list[Message]:
     return messages
 
 
+def joint_names_swapped(messages: list[Message]) -> list[Message]:
+    """Two arm joints' names swapped in every joint state (a driver's or a URDF's order), their values kept."""
+    for msg in _of(messages, (JOINTS,)):
+        names = list(msg.name)
+        names[1], names[2] = names[2], names[1]
+        msg.name = names
+    return messages
+
+
 DEFECTS_E3: dict[str, tuple[Edit, str]] = {  # the kinds no issue had named, now checked: defect -> (edit, flag)
     "two frames swapped": (frames_swapped, "frame order"),
     "distortion k1 = 3": (nonsense_distortion, "camera lens"),
@@ -421,6 +430,7 @@ DEFECTS_E3: dict[str, tuple[Edit, str]] = {  # the kinds no issue had named, now
     "depth misregistered 8 px": (depth_misregistered, "depth registration"),
     "colour image mirrored": (mirrored_image, "depth registration"),
     "camera bumped 10 / 6 px": (camera_bumped, "depth registration"),
+    "joint names swapped": (joint_names_swapped, "kinematics"),  # with the robot's model (doctor --robot-mjcf)
 }
 COPIES = ("near-duplicate episode", "time-reversed copy", "near-duplicate 0.2 mm")  # planted from another bag
 

@@ -72,7 +72,7 @@ def _host_words(host: dict | None) -> str:
     return where
 
 
-def _speed_verdict(fm1: dict, dp16: dict, host: dict | None = None) -> str:
+def speed_verdict(fm1: dict, dp16: dict, host: dict | None = None) -> str:
     """The speed-up DP-16 / FM-1 against FAST_RATIO. Judged on the sampler (the network evaluations after the
     encoder: 1 against 16, which no host changes) when the parts were timed; the whole plan's ratio, encoder
     included, is stated for the host it was measured on, since the encoder's share differs by host (measured: 10.4x
@@ -152,7 +152,7 @@ def claims(ev: dict, rp: dict) -> list[str]:
                        f"({dp16['px224']:.2f}); replay {sr(f'{fm}/euler-1')} vs {sr(f'{dp}/ddpm-16')}"
                        f"{paired(f'{fm}/euler-1', f'{dp}/ddpm-16')}.")
             out.append(f"- FM-1 much faster than DP-16 (at least {FAST_RATIO:.0f}x; {pair}): "
-                       f"{_speed_verdict(fm1, dp16, ev.get('host'))}")
+                       f"{speed_verdict(fm1, dp16, ev.get('host'))}")
         if fm16 and dp16:
             out.append(f"- At equal steps (16), {fm} more accurate than {dp}: "
                        f"{_paired_verdict(fm16, dp16, _converged(ev, fm, dp))}. {fm16['px']:.2f} vs "
