@@ -485,7 +485,7 @@ class WindowDataset(Dataset):
             self._perm = (n_pass, pass_permutation(self.seed, n_pass, len(self.items)))
         return self.items[int(self._perm[1][k])]
 
-    def _meta(self, e: int) -> dict:
+    def episode_meta(self, e: int) -> dict:
         """An episode's small arrays (stamps, end-effector series, camera, affordance maps and sync indices), read
         once and kept for the last few episodes: a window then costs one HDF5 read of its frames."""
         if e in self._metas:
@@ -523,7 +523,7 @@ class WindowDataset(Dataset):
         pixels from its projection, metres from its position. With target "action": the recorded states and
         actions instead."""
         g = self.files.group(self.names[e])
-        m = self._meta(e)
+        m = self.episode_meta(e)
         idx = [max(j, 0) for j in range(k - self.w.n_obs + 1, k + 1)]
         obs = self._images(g, m, k, idx) if self.w.images else np.zeros(0, np.float32)
         if self.w.target == "action":

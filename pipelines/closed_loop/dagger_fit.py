@@ -58,7 +58,7 @@ def path_geometry(ds: WindowDataset) -> tuple[np.ndarray, np.ndarray, list[Exper
     policy's state input holds) and the scene's expert (its path)."""
     anchors, measured, experts = [], [], []
     for e, k in ds.items:
-        m = ds._meta(e)
+        m = ds.episode_meta(e)
         g = ds.files.group(ds.names[e])
         rt, rp = reference_series(g, ds.names[e])
         anchors.append(m["now"][k])
