@@ -31,8 +31,12 @@ docs: install
 test: install lint docs
 	$(BIN)/python -m pytest -q
 
+# demo = `dvc repro`, with the three trainings run at once (pipelines/train_side_by_side.py: each stage's own command,
+# then `dvc commit`), which `dvc repro` runs one after another; the models are the same.
 demo: install
 	@test -d .git || (echo "make demo needs a git checkout (dvc)"; exit 1)
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/dvc repro split
+	PATH="$(abspath $(BIN)):$$PATH" ADLPIPE_SIDE_BY_SIDE=3 $(BIN)/python pipelines/train_side_by_side.py train@
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/dvc repro
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/dvc metrics show
 

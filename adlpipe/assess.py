@@ -167,6 +167,10 @@ def main(argv: list[str] | None = None) -> int:
     if not names:
         raise AdlError(f"{args.data}: the split's test part is empty")
     replay = read_json_object(args.replay, "replay details") if args.replay else None
+    kind = (replay or {}).get("scenes")
+    if (kind.get("kind") if isinstance(kind, dict) else kind) == "fresh":
+        raise AdlError(f"--replay {args.replay}: a replay of fresh scenes, not of the recorded test episodes assessed "
+                       "here; give the details of a replay of the test split (adlpipe replay without --scenes)")
     robots = Robots(args.robot_mjcf, args.ee_site)
     crit = Criteria()
     with schema.open_dataset(args.data, names) as f:

@@ -9,7 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import run_module
+from conftest import one_line_error, run_module
 
 from adlpipe.dataset import schema
 from adlpipe.geometry.camera import Lens, project
@@ -88,6 +88,13 @@ def test_the_stage_validates_its_verdicts_against_replay(ingested: Path, tmp_pat
     c = out["validation"]["pass_vs_success"]
     assert c["tp"] + c["fp"] + c["fn"] + c["tn"] == 3 and c["tp"] == sum(truth.values())
     assert "Validated against the simulated replay" in table.read_text()
+    # the default pipeline's replay runs fresh scenes: no ground truth for these episodes, said in one line
+    fresh = tmp_path / "fresh.json"
+    fresh.write_text(json.dumps({**json.loads(replay.read_text()), "scenes": {"kind": "fresh", "per_task": 20}}))
+    proc = run_module("assess", "--data", ingested, "--split", split, "--replay", fresh, "--details",
+                      tmp_path / "b.json", "--table", tmp_path / "b.md")
+    assert "a replay of fresh scenes, not of the recorded test episodes" in one_line_error(proc)
+    assert not (tmp_path / "b.json").exists()
 
 
 def test_a_labs_robot_model_from_a_file_and_a_wrong_site_is_one_line(tmp_path: Path) -> None:

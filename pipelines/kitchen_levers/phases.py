@@ -57,8 +57,8 @@ def main() -> None:
             for k, task in enumerate(ORDER):
                 x, y = [task in a[s] for s in seeds], [task in b[s] for s in seeds]
                 t = paired_success(x, y)
-                print(f"| {budget} | {steps} | {task} | {sum(x)} | {sum(y)} | {t.only_first} : {t.only_second} | {t.p_value:.3f} | "
-                      f"{fa[k]} | {fb[k]} |")
+                print(f"| {budget} | {steps} | {task} | {sum(x)} | {sum(y)} | {t.only_first} : {t.only_second} | "
+                      f"{t.p_value:.3f} | {fa[k]} | {fb[k]} |")
 
 
 if __name__ == "__main__":
