@@ -86,6 +86,8 @@ class Limits:
     registration_share: float = 0.03  # depth edges matching the colour edges this share of the image's width or
     #                                   more to the side: depth misregistered, an image mirrored, or a camera moved
     #                                   (200 clean at 128 px, 20 at 48 px: all at no shift; mirrored: 11 px or more)
+    registration_gain: float = 0.05  # ... matching better there than at no shift by this much (planted: 0.074 or
+    #                                  more; a colour image and a depth image with nothing in common: 0.031)
     # doctor_checks: against the dataset's medians (3 episodes per task are enough)
     colour_off: float = 0.05  # mean colour this far (sum over R G B, 0-1) from the dataset's ...
     swap_gain: float = 0.5  # ... and red and blue swapped this much nearer to it: BGR stored as RGB (the same
@@ -292,10 +294,11 @@ def unit_flags(fig: dict, limits: Limits) -> list[str]:
                    f"the episode; limit {100 * limits.fk_m:.0f} cm): joint names, order or units other than the "
                    "robot model's?")
     shift, width = fig["registration_px"], fig["image_px"]
-    if shift is not None and shift > limits.registration_share * width:
+    if shift is not None and shift > limits.registration_share * width and \
+            fig["registration_gain"] >= limits.registration_gain:
         out.append(f"depth registration: the depth image's edges match the colour image's {shift:.0f} px to the side "
-                   f"(limit {limits.registration_share:.0%} of {width} px): depth offset from colour, an image "
-                   "mirrored, or a camera moved after calibration?")
+                   f"(limit {limits.registration_share:.0%} of {width} px), {fig['registration_gain']:.2f} better "
+                   "than in place: depth offset from colour, an image mirrored, or a camera moved after calibration?")
     if fig["order_ratio"] is not None and fig["order_ratio"] < limits.frame_swap:
         out.append(f"frame order: the frames at {fig['order_at_s']:.2f} s change the image {fig['order_ratio']:.2f}x "
                    f"as much swapped back as stored (limit {limits.frame_swap}): two frames stored out of order?")
