@@ -34,12 +34,8 @@ TEST_WORKERS ?= 2
 test: install lint docs
 	$(BIN)/python -m pytest -q $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadscope)
 
-# demo = `dvc repro`, with the three trainings run at once (pipelines/train_side_by_side.py: each stage's own command,
-# then `dvc commit`), which `dvc repro` runs one after another; the models are the same.
 demo: install
 	@test -d .git || (echo "make demo needs a git checkout (dvc)"; exit 1)
-	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/dvc repro split
-	PATH="$(abspath $(BIN)):$$PATH" ADLPIPE_SIDE_BY_SIDE=3 $(BIN)/python pipelines/train_side_by_side.py train@
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/dvc repro
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/dvc metrics show
 
