@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -37,10 +37,10 @@ class BenchmarkConfig:
     details: Path
     table: Path
     curve_plot: Path | None = None  # with curve
-    steps: list[int] | None = None  # None: [2, 16]
+    steps: list[int] = field(default_factory=lambda: [2, 16])  # sampling steps of the generative models
     dp_sampler: str = "ddpm"
     max_steps: int | None = None  # None: the environment's limit
-    checkpoints: list[str] | None = None  # None: best and last
+    checkpoints: list[str] = field(default_factory=lambda: ["best", "last"])
     episodes: int = 50
     seed: int = FIRST_SEED
     execute: int = 8
@@ -194,7 +194,7 @@ def run_benchmark(c: BenchmarkConfig) -> tuple[dict, dict]:
     curve plot: the rows (model, steps, checkpoint) -> summary and the curves (model, steps) -> summary."""
     bench = BENCHMARKS[c.env]
     max_steps = c.max_steps or bench.max_steps  # the environment's limit unless --max-steps
-    c = replace(c, max_steps=max_steps, steps=c.steps or [2, 16], checkpoints=c.checkpoints or ["best", "last"])
+    c = replace(c, max_steps=max_steps)
     bench.env().make_env().close()  # the optional extra's absence: one line
     per, along, ref_eps = run_episodes(c, bench, *episode_jobs(c, bench))
     refs = {k: summary(eps, bench.tasks) for k, eps in ref_eps.items()}

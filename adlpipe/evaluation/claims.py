@@ -68,8 +68,7 @@ def _ratio_verdict(lo: float | None, hi: float | None, ratio: float) -> str:
 def _host_words(host: dict | None) -> str:
     if not host:
         return "a host not recorded"
-    where = host.get("gpu") or f"{host.get('cpu', '?')}, {host.get('torch_threads', '?')} torch threads"
-    return where
+    return host.get("gpu") or f"{host.get('cpu', '?')}, {host.get('torch_threads', '?')} torch threads"
 
 
 def speed_verdict(fm1: dict, dp16: dict, host: dict | None = None) -> str:

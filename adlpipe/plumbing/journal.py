@@ -25,13 +25,14 @@ def fingerprint(options: object, checkpoints: list[Path], split: Path, data: Pat
     split and the checkpoints by content."""
     st = data.stat()
     what = {"args": {k: v for k, v in sorted(vars(options).items()) if k not in NOT_FIGURES},
-            "split": sha256_of(split), "data": [str(data.resolve()), st.st_size, st.st_mtime_ns],
-            "checkpoints": {str(p): sha256_of(p) for p in checkpoints if p.exists()}}
+            "split": _file_sha256(split), "data": [str(data.resolve()), st.st_size, st.st_mtime_ns],
+            "checkpoints": {str(p): _file_sha256(p) for p in checkpoints if p.exists()}}
     return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def sha256_of(path: Path) -> str:
-    """A file's sha256 (the split, a checkpoint), read in blocks."""
+def _file_sha256(path: Path) -> str:
+    """A file's sha256 (the split, a checkpoint), read in blocks (a bag's hash, of its parts or folder, is
+    adlpipe.dataset.from_bag.sha256_of)."""
     with open(path, "rb") as f:
         return hashlib.file_digest(f, "sha256").hexdigest()
 

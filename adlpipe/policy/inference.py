@@ -19,31 +19,6 @@ from .checkpoint import load_policy
 from .models import Observation, Policy
 
 
-def latency_ms(policy: Policy, obs: Observation, steps: int, method: str, repeats: int,
-               placement: Placement | None = None) -> float:
-    """Median milliseconds of one prediction; the device's queue is drained before each clock read."""
-    return statistics.median(latency_samples_ms(policy, obs, steps, method, repeats, placement))
-
-
-def latency_samples_ms(policy: Policy, obs: Observation, steps: int, method: str, repeats: int,
-                       placement: Placement | None = None) -> list[float]:
-    """Milliseconds of each of `repeats` predictions after a warm-up (for a median and its interval)."""
-    placement = placement or Placement()
-    gen = placement.generator(0)
-    obs = to_device(obs, placement.device)
-    with placement.autocast():
-        for _ in range(3):  # warm-up (and, with --compile, the compilation)
-            policy.predict(obs, steps, method, gen)
-        times = []
-        for _ in range(repeats):
-            synchronize(placement.device)
-            t0 = time.perf_counter()
-            policy.predict(obs, steps, method, gen)
-            synchronize(placement.device)
-            times.append((time.perf_counter() - t0) * 1000.0)
-    return times
-
-
 def phase_samples_ms(policy: Policy, obs: Observation, steps: int, method: str, repeats: int,
                      placement: Placement | None = None) -> dict[str, list[float]]:
     """Per repeat, the milliseconds of one prediction ("ms") and of its two parts: the encoder (the observation's
