@@ -28,11 +28,8 @@ lint: install
 docs: install
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict -q -d site
 
-# The suite in TEST_WORKERS processes (pytest-xdist), each test module's fixtures in one of them (--dist loadscope);
-# TEST_WORKERS=0 runs it in this process.
-TEST_WORKERS ?= 2
 test: install lint docs
-	$(BIN)/python -m pytest -q $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadscope)
+	$(BIN)/python -m pytest -q
 
 demo: install
 	@test -d .git || (echo "make demo needs a git checkout (dvc)"; exit 1)

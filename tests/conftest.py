@@ -25,13 +25,6 @@ def public_bag(name: str) -> Path:
         pytest.skip(f"public fixture bag {name} not found in {PUBLIC_BAGS} (set ADLPIPE_PUBLIC_BAGS to its folder)")
     return path
 SMALL = ["--size", "64", "--camera-hz", "5"]
-FIRST = ("test_pipeline.py",)  # the longest module (the tiny repro and its side pipelines: 10 of the suite's 26
-#                                CPU-minutes): started first, so that under `make test`'s two processes the other
-#                                one runs the rest beside it instead of it starting last and running alone
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    items.sort(key=lambda item: item.path.name not in FIRST)  # stable: the order within each part is kept
 
 
 def run_module(module: str, *args: str, check: bool = False, timeout: float = 600,
