@@ -27,11 +27,13 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 from doctor_peers import Findings, peer_findings  # noqa: E402
-from plant_defects import COPIES, DEFECTS, DEFECTS_E2, plant  # noqa: E402
+from plant_defects import COPIES, DEFECTS, DEFECTS_E2, DEFECTS_E3, plant  # noqa: E402
+from plant_heldout import DEFECTS_HELDOUT, NEEDS_DONOR, plant_heldout  # noqa: E402
 
 EPISODES_PER_TASK = 3
 COPY_TASKS = ("brush_the_teeth", "comb_the_hair", "feed_the_human")  # a copy's third bag is its first, edited
-SETS = {"first": (DEFECTS, 7), "e2": (DEFECTS_E2, 11), "clean": ({}, 13)}  # set -> (its defects, recording seed)
+SETS = {"first": (DEFECTS, 7), "e2": (DEFECTS_E2, 11), "e3": (DEFECTS_E3, 19), "heldout": (DEFECTS_HELDOUT, 17),
+        "clean": ({}, 13)}  # set -> (its defects, recording seed)
 
 
 def adlpipe(*args: str) -> subprocess.CompletedProcess:
@@ -59,7 +61,12 @@ def recordings(root: Path, defects: dict, seed: int) -> tuple[dict[str, str], li
     victims = others[:: max(1, len(others) // max(1, len(singles)))][: len(singles)]  # spread over the tasks
     planted_at = {}
     for bag, defect in zip(victims, singles, strict=True):
-        plant(bag, planted / bag.name, defect)
+        if defect in DEFECTS_HELDOUT:  # a donor: the next episode of the same task
+            stem, k = bag.stem.rsplit("_", 1)
+            donor = clean / f"{stem}_{(int(k) + 1) % EPISODES_PER_TASK:04d}.mcap"
+            plant_heldout(bag, planted / bag.name, defect, donor if defect in NEEDS_DONOR else None)
+        else:
+            plant(bag, planted / bag.name, defect)
         planted_at[bag.name] = defect
     for task, defect in zip(copy_tasks, copies, strict=True):
         plant(clean / f"{task}_0000.mcap", planted / f"{task}_0002.mcap", defect)
@@ -71,8 +78,9 @@ def recordings(root: Path, defects: dict, seed: int) -> tuple[dict[str, str], li
     return planted_at, [b.name for b in bags if b.name not in planted_at and b.name not in originals]
 
 
-def doctor_flags(root: Path) -> dict[str, list[str]]:
-    """Bag name -> the doctor's flags on its episode (and bag_of_episode.json for the peers on the export)."""
+def doctor_flags(root: Path, robot: Path | None = None) -> dict[str, list[str]]:
+    """Bag name -> the doctor's flags on its episode (and bag_of_episode.json for the peers on the export); with the
+    robot's model (doctor --robot-mjcf) when `robot` is given."""
     import h5py
 
     data = root / "adl.h5"
@@ -81,8 +89,9 @@ def doctor_flags(root: Path) -> dict[str, list[str]]:
     refused = {Path(line.split(": ")[2]).name: line for line in ingest.stderr.splitlines() if "skipped bad bag" in line}
     for line in refused.values():
         print(f"  {line}")
-    adlpipe("adlpipe.doctor", str(data), "--json", str(root / "doctor.json"))
-    figs = json.loads((root / "doctor.json").read_text())["episodes"]
+    report = root / ("doctor_robot.json" if robot else "doctor.json")
+    adlpipe("adlpipe.doctor", str(data), "--json", str(report), *(["--robot-mjcf", str(robot)] if robot else []))
+    figs = json.loads(report.read_text())["episodes"]
     with h5py.File(data) as f:
         bag_of = {n: Path(str(f["episodes"][n].attrs["source_path"])).name for n in f["episodes"]}
     (root / "bag_of_episode.json").write_text(json.dumps(bag_of))
@@ -116,7 +125,11 @@ def main() -> None:
     p.add_argument("--peers", type=Path, default=REPO / "bench" / "peers", help="folder of the peers' venvs")
     p.add_argument("--set", choices=sorted(SETS), default="first",
                    help="first: the 8 defects of issue E.3; e2: the 13 of issue E2 (clock, calibration, units, "
-                   "labels, copies), recorded with another seed; clean: 30 clean episodes (false flags only)")
+                   "labels, copies), recorded with another seed; e3: the kinds issue E3 named that the doctor now "
+                   "checks; heldout: 14 kinds no issue named, from labs' public reports (bench/plant_heldout.py); "
+                   "clean: 30 clean episodes (false flags only)")
+    p.add_argument("--robot", action="store_true", help="also run the doctor with the recording arm's model "
+                   "(--robot-mjcf), as its own row")
     a = p.parse_args()
     root = a.out or Path(tempfile.mkdtemp(prefix="adlpipe-doctor-peers-"))
     root.mkdir(parents=True, exist_ok=True)
@@ -124,6 +137,12 @@ def main() -> None:
     defects, clean = recordings(root, kinds, seed)
     flags = doctor_flags(root)
     tools: dict[str, Findings | str] = {"adlpipe doctor": {b: {f.split(":")[0] for f in fl} for b, fl in flags.items()}}
+    if a.robot:  # the robot's model too (what a lab with a URDF or MJCF of its arm runs)
+        from adlpipe.sim.world import arm_mjcf
+
+        (root / "arm.xml").write_text(arm_mjcf())
+        with_robot = doctor_flags(root, root / "arm.xml")
+        tools["adlpipe doctor --robot-mjcf"] = {b: {f.split(":")[0] for f in fl} for b, fl in with_robot.items()}
     tools.update(peer_findings(a.peers, root))
     rows: dict[str, tuple[dict, int] | str] = {}
     for tool, findings in tools.items():
