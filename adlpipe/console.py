@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-from .plumbing.errors import CONSOLE, run_cli
+from .plumbing.errors import CONSOLE, missing_extra, run_cli
 
 STAGES = ("record", "ingest", "split", "train", "evaluate", "replay", "report", "trials", "seeds", "inspect",
           "export", "doctor", "edit", "assess", "benchmark", "results", "serve", "rollout")
@@ -32,7 +32,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"adlpipe: error: {args[0]!r} is not a stage (one of {', '.join(STAGES)})", file=sys.stderr)
         return 2
     stage = args[0]
-    module = importlib.import_module(f"adlpipe.{stage}")
+    try:
+        module = importlib.import_module(f"adlpipe.{stage}")
+    except ModuleNotFoundError as exc:  # a stage whose optional extra is not installed (torch, mujoco, ...)
+        if (line := missing_extra(exc)) is None:
+            raise
+        print(f"adlpipe.{stage}: error: {line}", file=sys.stderr)
+        return 2
     CONSOLE.append(f"adlpipe.{stage}")
     return run_cli(f"adlpipe.{stage}", module.main, args[1:])
 

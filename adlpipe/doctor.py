@@ -23,7 +23,6 @@ from pathlib import Path
 import numpy as np
 
 from .curation import doctor
-from .offline.robot import Robot
 from .plumbing.atomic import check_outputs, json_text, write_all_atomic
 from .plumbing.cli import Parser, float_range
 from .plumbing.errors import AdlError, run_cli
@@ -109,7 +108,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.data}: {checked} episode(s) verified against their bags, {len(lines)} mismatch(es)")
         return 1 if lines else 0
     limits = doctor.Limits(idle_s=args.idle_s, max_speed_mps=args.max_speed)
-    robot = Robot(path=args.robot_mjcf, ee_site=args.ee_site) if args.robot_mjcf else None
+    robot = None
+    if args.robot_mjcf:
+        from .offline.robot import Robot  # mujoco: the sim extra, needed only here
+
+        robot = Robot(path=args.robot_mjcf, ee_site=args.ee_site)
     figs = doctor.examine(str(args.data), args.episodes, limits, robot)
     print(doctor.summary_table(figs), end="")
     for line in doctor.flag_lines(figs):

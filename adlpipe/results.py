@@ -10,8 +10,9 @@
 
 README marks each generated table with `<!-- results:NAME -->` ... `<!-- /results:NAME -->`; everything between
 the marks is written here from results/default/ (evaluate's, replay's and the closed loop's details) and
-results/seeds/seeds.json, with the same cells the report prints (adlpipe.evaluation.tables and .outcomes). Prose
-around the tables is written by hand; the tables are not.
+results/seeds/seeds.json, with the same cells the report prints (adlpipe.evaluation.tables and .outcomes), and so is
+the paragraph on the default run's decision (`results:decision`). Other prose is written by hand; tests/test_docs.py
+checks the figures it quotes from results/ against them.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from pathlib import Path
 from .evaluation.claims import claims
 from .evaluation.dagger import ARMS as DAGGER_ARMS
 from .evaluation.dagger import dagger_lines, fit_lines, merged
+from .evaluation.decision import decision_lines
 from .evaluation.latency import latency_lines, serve_lines
 from .evaluation.outcomes import breakdown_lines
 from .evaluation.person import motion_training_lines, moving_person_lines
@@ -157,7 +159,7 @@ def tables(results: Path) -> dict[str, str]:
     run = results / "default"
     ev, rp = _load(run / RUN_FILES[0]), _load(run / RUN_FILES[1])
 
-    out = {"default": default_table(ev, rp), "blind": blind_lines(ev, rp),
+    out = {"default": default_table(ev, rp), "decision": decision_lines(ev, rp), "blind": blind_lines(ev, rp),
            "per-task": per_task_lines(ev, rp, grasp_tasks()),
            "safety": breakdown_lines({k: v for k, v in rp.get("diagnostics", {}).items() if FIXED not in k},
                                      rp["per_episode"])}

@@ -17,9 +17,29 @@ def test_readme_tables_agree_with_the_committed_results() -> None:
     proc = run_module("results", "--check")
     assert proc.returncode == 0, proc.stderr
     pages = "".join(p.read_text() for p in [REPO / "README.md", *(REPO / "docs").rglob("*.md")])
-    for name in ("default", "blind", "per-task", "safety", "seeds", "closed-loop-fresh", "moving-person"):
+    for name in ("default", "decision", "blind", "per-task", "safety", "seeds", "closed-loop-fresh", "moving-person"):
         assert f"<!-- results:{name} -->" in pages, name
     assert "<!-- results:default -->" in (REPO / "README.md").read_text()  # the front page's headline table
+
+
+def test_the_decision_paragraph_says_what_the_rule_says_on_the_scenes_it_had() -> None:
+    import json
+
+    from adlpipe.evaluation.decision import decide_replay, decision_lines
+
+    ev, rp = (json.loads((REPO / "results" / "default" / f"{n}_details.json").read_text()) for n in ("eval", "replay"))
+    got = decide_replay(ev, rp)
+    text = " ".join(decision_lines(ev, rp))
+    assert got is not None and got["recommended"] == rp["sequential"]["looks"][-1]["recommended"]
+    assert f"after {got['n']} scenes" in text and "deploy " in text, text
+    # the same run cut to its first look (50 scenes, one per task and batch): what the rule said then
+    first = set(sorted(rp["tasks"], key=lambda s: int(s.rsplit("/", 1)[1]))[:50])
+    cut = {**rp, "per_episode": {p: {s: v for s, v in o.items() if s in first} for p, o in rp["per_episode"].items()},
+           "sequential": {**rp["sequential"], "looks": rp["sequential"]["looks"][:1]}}
+    early = decide_replay(ev, cut)
+    assert early is not None and early["status"] == rp["sequential"]["looks"][0]["status"]
+    if early["recommended"] is None:
+        assert " ".join(decision_lines(ev, cut)).startswith("**The default run is undecided** after 50 fresh scenes")
 
 
 def test_a_changed_figure_is_caught_and_rewritten(tmp_path: Path) -> None:

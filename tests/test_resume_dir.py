@@ -77,4 +77,3 @@ def test_a_last_checkpoint_that_is_not_one_is_one_line(data: tuple[Path, Path], 
     torch.save(torch.zeros(3) if content == "a tensor" else content, tmp_path / "m" / "last.pt")
     err = one_line_error(train(data, "--out", tmp_path / "m"))
     assert "last.pt: not a training checkpoint adlpipe wrote" in err
-

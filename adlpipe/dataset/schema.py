@@ -493,4 +493,3 @@ def check_horizon(model: Path | str, horizon: int, f: h5py.File, data: Path | st
     if n != horizon:
         raise AdlError(f"{model}: predicts {horizon} waypoints but {data} holds {n} per trajectory; use data "
                        f"ingested with --waypoints {horizon} (or train on this data)")
-

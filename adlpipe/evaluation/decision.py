@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import re
+import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -197,3 +198,48 @@ def decide_replay(ev: dict, rp: dict, rule: Rule = Rule()) -> dict | None:  # no
     force = {p: {s: d.get("peak_force_n", 0.0) for s, d in rp.get("diagnostics", {}).get(p, {}).items()}
              for p in latency}
     return decide({p: rp["per_episode"][p] for p in latency}, force, latency, rule)
+
+
+SHORT_NAMES = {"fm_cnn/euler-1": "FM-1", "dp_cnn/ddpm-16": "DP-16", "bc_cnn": "BC"}
+MEANING = {"FM-1": "flow matching, one Euler step", "DP-16": "Diffusion Policy, 16 DDPM steps",
+           "BC": "behaviour cloning"}
+
+
+def decision_lines(ev: dict, rp: dict) -> list[str]:
+    """README's paragraph on a committed default run's decision: the rule re-applied to its replay and evaluate
+    details (the recommendation, when it was decided, safety, each candidate's success and latency)."""
+    rule = Rule(**rp.get("sequential", {}).get("rule", {}))
+    got = decide_replay(ev, rp, rule)
+    if got is None:
+        return []
+    name = {p: SHORT_NAMES.get(p, p) for p in rp["per_episode"]}
+    rate = {p: 100 * sum(v.values()) / max(len(v), 1) for p, v in rp["per_episode"].items()}
+    ms = {p: m for p, m in policies_of(ev).items() if p in name}
+    looks = rp.get("sequential", {}).get("looks", [])
+    n = got["n"]
+    when = f"at {n} scenes"
+    if looks:
+        early = [str(look["scenes"]) for look in looks[:-1]]
+        tasks = len(set(rp.get("tasks", {}).values()))
+        capped = tasks > 0 and rp["sequential"]["scenes"] >= rp["sequential"]["cap_per_task"] * tasks
+        when = f"after {n} scenes" + (", its cap" if capped else "") + \
+            (f"; undecided at {', '.join(early[:-1])}{' and ' if len(early) > 1 else ''}{early[-1]}" if early else "")
+    out_safety = got.get("out_safety", {})
+    safety = ("no policy was out on safety" if not out_safety else
+              f"{', '.join(name[p] for p in out_safety)} out on safety")
+    pct = lambda p: f"{name[p]} ({rate[p]:.1f} %)".replace(".0 %", " %")  # noqa: E731
+    r = got["recommended"]
+    if r is None:
+        return textwrap.wrap(f"**The default run is undecided** after {n} fresh scenes ({safety}): "
+                             + ", ".join(pct(p) for p in name) + ".", 115, break_on_hyphens=False)
+    others = [c for c in got["candidates"] if c != r]
+    slowest = max(others, key=lambda c: ms.get(c) or 0.0) if others else None
+    first = f"**The default run ends in a decision: deploy {name[r]}**" + \
+        (f" ({MEANING[name[r]]})" if name[r] in MEANING else "")
+    rest = (f". Replay ran fresh scenes until the rule was decided ({when}): {safety}, and {pct(r)} was resolved "
+            f"not worse than {' or '.join(pct(c) for c in others)} by more than {100 * rule.margin:.0f} points"
+            if others else f". Replay ran fresh scenes until the rule was decided ({when}): {safety}; {pct(r)} "
+            "was the only candidate left")
+    speed = (f", at {ms[r]:.1f} ms per plan against {name[slowest]}'s {ms[slowest]:.1f}."
+             if slowest and ms.get(r) is not None and ms.get(slowest) is not None else ".")
+    return textwrap.wrap(first + rest + speed, 115, break_on_hyphens=False)

@@ -325,5 +325,3 @@ def camera_rate(f: h5py.File, name: str) -> float:
     """The recorded camera rate of an episode (median frame interval), at which closed-loop replay renders."""
     t = f[schema.EPISODES][name]["frames/t"][()]
     return float(1.0 / np.median(np.diff(t))) if len(t) > 1 else 15.0
-
-

@@ -56,6 +56,18 @@ def read_small_yaml(path: Path, what: str) -> object:
         raise AdlError(f"{path}: cannot read {what}: {' '.join(str(exc).split())[:200]}") from None
 
 
+# What each optional extra installs (pyproject.toml): a stage that needs one names it instead of a traceback.
+EXTRAS = {"torch": "train", "mujoco": "sim", "rerun": "viz", "dvc": "pipeline"}
+
+
+def missing_extra(exc: ModuleNotFoundError) -> str | None:
+    """One line for a missing optional dependency (its module and the extra that installs it), else None."""
+    root = (exc.name or "").split(".")[0]
+    if root not in EXTRAS:
+        return None
+    return f"this needs {root}, which is not installed: pip install 'adlpipe[{EXTRAS[root]}]' (or 'adlpipe[all]')"
+
+
 def one_line(exc: BaseException, limit: int = 100) -> str:
     """An exception's text on one line, at most `limit` characters (for a message that names it)."""
     return " ".join(str(exc).split())[:limit]
@@ -128,6 +140,10 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
         return _fail(prog, str(exc))
     except OSError as exc:
         return _fail(prog, os_error_message(exc))
+    except ModuleNotFoundError as exc:
+        if (line := missing_extra(exc)) is None:
+            raise
+        return _fail(prog, line)
     except KeyboardInterrupt:
         print(interrupted_line(prog), file=sys.stderr)
         return 130
