@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import re
 import shlex
+from pathlib import Path
 
 import pytest
 from conftest import REPO
@@ -80,3 +81,53 @@ def test_readme_stays_a_front_page() -> None:
     # the default run's table and the paragraph on its decision, nothing else
     assert sorted(set(re.findall(r"<!-- results:([\w-]+) -->", text))) == ["decision", "default"]
     assert "docs/science/findings.md" in text
+
+
+PIPELINES = [REPO, *sorted(p.parent for p in (REPO / "pipelines").glob("*/dvc.yaml"))]
+
+
+def _stages(where: Path) -> list:
+    from dvc.repo import Repo
+
+    return list(Repo(str(where)).index.stages)
+
+
+def test_every_documented_pipeline_depends_on_what_some_pipeline_makes() -> None:
+    """A side pipeline (pipelines/*) reads the default's data and models by path: each of its inputs is a tracked
+    file or what a stage of some pipeline writes (so a model the default stopped training is caught here, not by a
+    user's dvc repro)."""
+    import subprocess
+
+    tracked = set(subprocess.run(["git", "ls-files"], cwd=REPO, capture_output=True, text=True,
+                                 check=True).stdout.split())
+    outs = {Path(o.fs_path) for where in PIPELINES for s in _stages(where) for o in s.outs}
+    missing = []
+    for where in PIPELINES[1:]:
+        for stage in _stages(where):
+            for dep in stage.deps:
+                p = Path(dep.fs_path)
+                if p.name == "params.yaml" or not p.is_relative_to(REPO):
+                    continue
+                rel = p.relative_to(REPO).as_posix()
+                made = any(p == o or o in p.parents or p in o.parents for o in outs)
+                if not (made or rel in tracked or any(t.startswith(rel + "/") for t in tracked)):
+                    missing.append(f"{where.name}:{stage.name}: {rel}")
+    assert not missing, missing
+
+
+STAGE_COMMANDS = [(f"{where.relative_to(REPO).as_posix() or '.'}:{s.name}", where, cmd) for where in PIPELINES
+                  for s in _stages(where) for cmd in [s.cmd] if isinstance(cmd, str)
+                  and cmd.startswith("python -m adlpipe.") and "&&" not in cmd and "|" not in cmd]
+
+
+@pytest.mark.parametrize(("where", "folder", "cmd"), STAGE_COMMANDS, ids=[w for w, _, _ in STAGE_COMMANDS])
+def test_every_pipeline_stage_command_parses(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture,
+                                            where: str, folder: Path, cmd: str) -> None:
+    words = shlex.split(cmd)
+    stage = words[2].removeprefix("adlpipe.")
+    monkeypatch.setenv("ADLPIPE_PARSE_ONLY", "1")
+    monkeypatch.chdir(folder)
+    module = importlib.import_module(f"adlpipe.{stage}")
+    with pytest.raises(SystemExit) as done:
+        module.main(words[3:])
+    assert done.value.code == 0, f"{where}: {cmd}: {capsys.readouterr().err.strip()}"
