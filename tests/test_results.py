@@ -148,3 +148,41 @@ def test_the_dagger_fit_table_reads_each_set_on_and_off_the_path() -> None:
     assert rows[1].startswith("| DP-16 | DAgger round 1 | + round 1's rollouts | 3.7 | 3.9 / 5.1 |")
     assert "12 evenly spaced frames of every episode (40 test demonstrations" in lines[-1]
     assert fit_lines({"dp_cnn": {"per_episode": 12, "sets": {}}}) == []
+
+
+def _default_figures() -> dict[str, str]:
+    """The figures the prose around the default run's tables quotes, from results/default as committed."""
+    import csv
+    import json
+
+    run = REPO / "results" / "default"
+    rp = json.loads((run / "replay_details.json").read_text())
+    n = len(rp["tasks"])
+    rate = {p: f"{100 * sum(v.values()) / len(v):.1f}" for p, v in rp["per_episode"].items()}
+    force = {p: [d.get("peak_force_n", 0.0) for d in v.values()] for p, v in rp["diagnostics"].items()}
+    unsafe = {p: sum(f > 20 for f in v) for p, v in force.items()}
+    peak = {p: f"{max(v):.1f}" for p, v in force.items()}
+    best = {}
+    for model in ("fm_cnn", "dp_cnn", "bc_cnn"):
+        with open(run / "train" / f"{model}.csv") as f:
+            rows = [r for r in csv.DictReader(f) if r["val_px"]]
+        best[model] = min(rows, key=lambda r: float(r["val_px"]))["epoch"]
+    demo = json.loads((REPO / "results" / "bench" / "demo_side_by_side.json").read_text())["runs"][0]["make_demo"]
+    fm, dp, bc = "fm_cnn/euler-1", "dp_cnn/ddpm-16", "bc_cnn"
+    return {
+        "decided": f"this run was decided at **{n} scenes**",
+        "epochs": f"best epochs FM {best['fm_cnn']}, DP {best['dp_cnn']}, BC {best['bc_cnn']} of 800",
+        "success": f"FM-1 {rate[fm]} %, DP-16 {rate[dp]} %, BC {rate[bc]} % against blind's {rate['blind']} % on the "
+                   f"same {n} scenes",
+        "forces": f"FM-1 in {unsafe[fm]} of {n} scenes (peak {peak[fm]} N), BC {unsafe[bc]} ({peak[bc]} N), DP-16 "
+                  f"{unsafe[dp]} ({peak[dp]} N), blind {unsafe['blind']}",
+        "demo": f"`make demo` **{demo // 60} min {demo % 60} s**",
+    }
+
+
+def test_the_prose_around_the_default_tables_quotes_the_committed_run() -> None:
+    """Hand-written sentences that quote results/default (the tables and the decision are generated): each figure
+    as the committed run has it, so a re-run that changes one fails here until the prose is rewritten."""
+    page = " ".join((REPO / "docs" / "science" / "default-results.md").read_text().split())
+    for name, quote in _default_figures().items():
+        assert quote in page, (name, quote)
