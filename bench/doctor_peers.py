@@ -51,8 +51,16 @@ def lerobot_doctor(venv: Path, root: Path) -> Findings:
 
     export = root / "lerobot"
     if not export.exists():
-        subprocess.run([sys.executable, "-m", "adlpipe.export", str(root / "adl.h5"), str(export)], check=True,
-                       capture_output=True)
+        # a LeRobot dataset has one state vector: an episode whose joint names differ from most (a planted swap)
+        # cannot go in, so the export takes the others and lerobot-doctor checks those
+        import h5py
+
+        with h5py.File(root / "adl.h5") as f:
+            names = {n: tuple(map(str, f["episodes"][n]["series/joint_pos"].attrs["joint_names"]))
+                     for n in f["episodes"]}
+        common = max(set(names.values()), key=list(names.values()).count)
+        subprocess.run([sys.executable, "-m", "adlpipe.export", str(root / "adl.h5"), str(export), "--episodes",
+                        *sorted(n for n, j in names.items() if j == common)], check=True, capture_output=True)
     episodes = pq.read_table(next((export / "meta" / "episodes").rglob("*.parquet"))).to_pylist()
     bag_of = json.loads((root / "bag_of_episode.json").read_text())
     by_index = {ep["episode_index"]: bag_of[ep["adlpipe/name"]] for ep in episodes}
