@@ -1,6 +1,6 @@
 """The doctor's cross-modal and cross-episode checks (issue E2) on recorded bags with defects planted by the real
 writer (bench/plant_defects.py): each planted defect carries the flag that names it, the clean episodes none, with
-5 episodes per task, the doctor given the recording robot's model."""
+6 episodes per task, the doctor given the recording robot's model."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from conftest import REPO, run_module
 
 sys.path.insert(0, str(REPO / "bench"))
 from plant_defects import plant  # noqa: E402
+from plant_heldout import DEFECTS_HELDOUT, plant_heldout  # noqa: E402
 
 from adlpipe.sim.world import arm_mjcf  # noqa: E402
 
@@ -36,17 +37,22 @@ PLANTED = {  # bag -> (defect, the flag that must name it)
     "cover_the_food_0003.mcap": ("colour image mirrored", "depth registration"),
     "wipe_the_nose_0003.mcap": ("camera bumped 10 / 6 px", "depth registration"),
     "brush_the_teeth_0003.mcap": ("joint names swapped", "kinematics"),
+    # the end effector against where the image changes (added after the held-out measurement, which missed these)
+    "pass_the_water_0004.mcap": ("extrinsics in mm", "end effector not in image"),
+    "cover_the_food_0004.mcap": ("extrinsics quaternion wxyz", "end effector not in image"),
 }
 
 
 @pytest.fixture(scope="module")
 def doctored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
     root = tmp_path_factory.mktemp("doctor_checks")
-    run_module("record", "--episodes", "5", "--tasks", *TASKS, "--size", "48", "--camera-hz", "10", "--out",
+    run_module("record", "--episodes", "6", "--tasks", *TASKS, "--size", "48", "--camera-hz", "10", "--out",
                root / "clean", "--seed", "3", check=True)
     (root / "bags").mkdir()
     for bag in sorted((root / "clean").glob("*.mcap")):
-        if bag.name in PLANTED:
+        if bag.name in PLANTED and PLANTED[bag.name][0] in DEFECTS_HELDOUT:
+            plant_heldout(bag, root / "bags" / bag.name, PLANTED[bag.name][0])
+        elif bag.name in PLANTED:
             plant(bag, root / "bags" / bag.name, PLANTED[bag.name][0])
         else:
             shutil.copy(bag, root / "bags" / bag.name)
@@ -61,11 +67,11 @@ def doctored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
 
 
 def test_each_planted_defect_is_named_and_no_clean_episode_is_flagged(doctored: dict[str, list[str]]) -> None:
-    assert len(doctored) == 20
+    assert len(doctored) == 24
     for bag, (defect, flag) in PLANTED.items():
         assert flag in doctored[bag], (defect, doctored[bag])
     clean = {bag: flags for bag, flags in doctored.items() if bag not in PLANTED}
-    assert len(clean) == 4 and not any(clean.values()), clean
+    assert len(clean) == 6 and not any(clean.values()), clean
 
 
 @pytest.mark.parametrize("frames", [1, 2])

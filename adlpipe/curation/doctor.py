@@ -23,6 +23,7 @@ from .doctor_checks import (
     by_task,
     camera_figures,
     dataset_flags,
+    ee_in_image,
     end_speed,
     frame_figures,
     gripper_profile,
@@ -37,6 +38,8 @@ from .doctor_signals import action_figures, chatter, joint_figures, near_duplica
 
 RESAMPLE_HZ = 50.0  # the end-effector path is resampled at this rate for speed, jerk and idle time
 DEPTH_SAMPLES = 8  # depth images per episode read for the share of holes
+EE_MIN_FRAMES = 8  # frames that change with the end effector projected inside the image, to judge where it is (a
+#                   camera that does not see the end effector, as some labs mount one, is not judged)
 MIN_FOR_OUTLIERS = 3  # a task needs this many episodes before one of them is called an outlier (30 clean
 #                       episodes, 3 per task: none called one)
 OUTLIER_FIGURES = ("duration_s", "path_m", "peak_speed_mps", "fps")
@@ -86,6 +89,11 @@ class Limits:
     registration_share: float = 0.03  # depth edges matching the colour edges this share of the image's width or
     #                                   more to the side: depth misregistered, an image mirrored, or a camera moved
     #                                   (200 clean at 128 px, 20 at 48 px: all at no shift; mirrored: 11 px or more)
+    ee_motion_gap: float = 0.05  # the end effector's projection this share of the image's width (median over the
+    #                              frames that change, EE_MIN_FRAMES of them in the image) from any pixel that
+    #                              changed: K, extrinsics, the image or its focus disagree with tf (clean:
+    #                              at most 0.018 over 200 recordings at 128 px and 104 at 64 px; planted: a camera
+    #                              translation in mm 0.21, its rotation as wxyz 0.12, a mirrored image 0.10)
     registration_gain: float = 0.05  # ... matching better there than at no shift by this much (planted: 0.074 or
     #                                  more; a colour image and a depth image with nothing in common: 0.031)
     # doctor_checks: against the dataset's medians (3 episodes per task are enough)
@@ -130,6 +138,7 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits(), robot: Kinematics 
     fig.update(lens_figures(g))
     fig.update(image_figures(fr))
     fig.update(registration(g))
+    fig.update(ee_in_image(g))
     fig.update(kinematics(g, robot))
     fig.update(joint_units(g))
     fig["end_speed_mps"] = end_speed(ee_t, ee_pos, duration)
@@ -299,6 +308,11 @@ def unit_flags(fig: dict, limits: Limits) -> list[str]:
         out.append(f"depth registration: the depth image's edges match the colour image's {shift:.0f} px to the side "
                    f"(limit {limits.registration_share:.0%} of {width} px), {fig['registration_gain']:.2f} better "
                    "than in place: depth offset from colour, an image mirrored, or a camera moved after calibration?")
+    gap, seen = fig["ee_motion_gap"], round(fig["ee_motion_frames"] * (1 - (fig["ee_outside"] or 0.0)))
+    if gap is not None and seen >= EE_MIN_FRAMES and gap > limits.ee_motion_gap:
+        out.append(f"end effector not in image: the camera model puts it {gap * width:.1f} px from any pixel that "
+                   f"changed (median of {seen} frames; limit {limits.ee_motion_gap:.0%} of {width} px): K, "
+                   "extrinsics (rotation order, units), the image's orientation or its focus disagree with tf?")
     if fig["order_ratio"] is not None and fig["order_ratio"] < limits.frame_swap:
         out.append(f"frame order: the frames at {fig['order_at_s']:.2f} s change the image {fig['order_ratio']:.2f}x "
                    f"as much swapped back as stored (limit {limits.frame_swap}): two frames stored out of order?")

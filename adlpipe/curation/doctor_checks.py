@@ -9,9 +9,10 @@ channels in the other order (BGR), images much darker, a camera at a fraction of
 rate, a gripper that never moves in a task whose other episodes grasp, a path nearer another task's episodes than
 its own (a wrong label), and a time-reversed copy of another episode. The frames' order against their motion
 (two frames swapped) and the lens model against the image (distortion no real lens has); the command's timing
-against the arm's is doctor_signals.command_lag; the depth image's edges against the colour image's (registration).
-Not caught: a camera
-moved after calibration (stale extrinsics; docs/guide/curation.md). Each threshold is a field of doctor.Limits.
+against the arm's is doctor_signals.command_lag; the depth image's edges against the colour image's (registration);
+the end effector projected by the camera model against where the image changes (ee_in_image). Not caught: a camera
+moved a few centimetres after calibration (stale extrinsics; docs/guide/curation.md). Each threshold is a field of
+doctor.Limits.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import h5py
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from ..geometry.camera import distort, maps_outward, read_lens
+from ..geometry.camera import distort, maps_outward, project, read_lens
 from ..geometry.transforms import path_at
 from .doctor_signals import best_lag
 
@@ -52,6 +53,44 @@ def image_figures(fr: h5py.Group) -> dict:
         d = fr["depth"][int(len(fr["depth"]) // 2)]
         valid = d[d > 0]
         out["depth_median_m"] = float(np.median(valid)) / 1000.0 if len(valid) else None
+    return out
+
+
+MOTION_GREY = 0.08  # a pixel changed between a frame's neighbours by this much (0-1 grey) moved
+MOTION_MIN_PIXELS = 4  # a frame with fewer moving pixels says nothing about where the arm is
+
+
+def ee_in_image(g: h5py.Group) -> dict:
+    """Where the camera model puts the end effector against where the image changes: at each frame whose neighbours
+    differ, the distance from the end effector's projection (tf, K, extrinsics, lens) to the nearest pixel that
+    changed, as a share of the image's width; the median over those of them where the projection falls inside the
+    image, and the share outside. The end effector moves in the image where the camera model says, so a wrong K,
+    extrinsics (rotation order, units), a mirrored image or a camera out of focus moves the figure off 0."""
+    fr = g["frames"]
+    n = len(fr["t"])
+    out: dict = {"ee_motion_gap": None, "ee_motion_frames": 0, "ee_outside": None}
+    if n < 3:
+        return out
+    h, w = fr["rgb"].shape[1:3]
+    uv = project(fr["ee_pos"][()].astype(float), g["K"][()], g["T_base_camera"][()], read_lens(g), (w, h))
+    grey = [fr["rgb"][i].astype(np.float32).mean(-1) / 255.0 for i in range(2)]
+    gaps, outside = [], 0
+    for k in range(1, n - 1):
+        grey.append(fr["rgb"][k + 1].astype(np.float32).mean(-1) / 255.0)
+        moved = np.abs(grey[-1] - grey[-3]) > MOTION_GREY
+        if moved.sum() < MOTION_MIN_PIXELS:
+            continue
+        u, v = np.round(uv[k]).astype(int) if np.isfinite(uv[k]).all() else (-1, -1)
+        if not (0 <= u < w and 0 <= v < h):
+            outside += 1
+            continue
+        still = cv2.distanceTransform((~moved).astype(np.uint8), cv2.DIST_L2, 3)
+        gaps.append(float(still[v, u]) / w)
+    frames = len(gaps) + outside
+    out["ee_motion_frames"] = frames
+    if frames:
+        out["ee_outside"] = outside / frames
+        out["ee_motion_gap"] = float(np.median(gaps)) if gaps else None
     return out
 
 
