@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import gc
 import json
 import signal
 import sys
@@ -134,6 +135,11 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int], argv: list[str] 
         signal.signal(signal.SIGINT, _on_sigint)
         if sys.unraisablehook is sys.__unraisablehook__:  # a hook someone else set is theirs to keep
             sys.unraisablehook = _quiet_interrupts
+    if _running_as(prog):
+        # The stage's own process: what its imports made (torch's and scipy's modules, about a million objects) is
+        # never garbage, so the collector stops scanning it; Python's collections at exit took about 0.5 s of a
+        # torch stage's 2 s start-and-end (measured). What the stage itself makes is collected as ever.
+        gc.freeze()
     try:
         return main(argv)
     except AdlError as exc:
