@@ -308,7 +308,7 @@ def unit_flags(fig: dict, limits: Limits) -> list[str]:
         out.append(f"depth registration: the depth image's edges match the colour image's {shift:.0f} px to the side "
                    f"(limit {limits.registration_share:.0%} of {width} px), {fig['registration_gain']:.2f} better "
                    "than in place: depth offset from colour, an image mirrored, or a camera moved after calibration?")
-    gap, seen = fig["ee_motion_gap"], round(fig["ee_motion_frames"] * (1 - (fig["ee_outside"] or 0.0)))
+    gap, seen = fig["ee_motion_gap"], fig["ee_motion_frames"]
     if gap is not None and seen >= EE_MIN_FRAMES and gap > limits.ee_motion_gap:
         out.append(f"end effector not in image: the camera model puts it {gap * width:.1f} px from any pixel that "
                    f"changed (median of {seen} frames; limit {limits.ee_motion_gap:.0%} of {width} px): K, "

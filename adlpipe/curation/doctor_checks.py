@@ -17,6 +17,7 @@ doctor.Limits.
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Protocol
 
 import cv2
@@ -63,9 +64,10 @@ MOTION_MIN_PIXELS = 4  # a frame with fewer moving pixels says nothing about whe
 def ee_in_image(g: h5py.Group) -> dict:
     """Where the camera model puts the end effector against where the image changes: at each frame whose neighbours
     differ, the distance from the end effector's projection (tf, K, extrinsics, lens) to the nearest pixel that
-    changed, as a share of the image's width; the median over those of them where the projection falls inside the
-    image, and the share outside. The end effector moves in the image where the camera model says, so a wrong K,
-    extrinsics (rotation order, units), a mirrored image or a camera out of focus moves the figure off 0."""
+    changed, as a share of the image's width. Returns the median over the frames where the projection falls inside
+    the image, how many those are, and the share of changing frames where it falls outside. The end effector moves
+    in the image where the camera model says, so a wrong K, extrinsics (rotation order, units), a mirrored image or
+    a camera out of focus moves the figure off 0."""
     fr = g["frames"]
     n = len(fr["t"])
     out: dict = {"ee_motion_gap": None, "ee_motion_frames": 0, "ee_outside": None}
@@ -73,11 +75,11 @@ def ee_in_image(g: h5py.Group) -> dict:
         return out
     h, w = fr["rgb"].shape[1:3]
     uv = project(fr["ee_pos"][()].astype(float), g["K"][()], g["T_base_camera"][()], read_lens(g), (w, h))
-    grey = [fr["rgb"][i].astype(np.float32).mean(-1) / 255.0 for i in range(2)]
+    grey = deque((fr["rgb"][i].astype(np.float32).mean(-1) / 255.0 for i in range(2)), maxlen=3)  # k-1, k, k+1
     gaps, outside = [], 0
     for k in range(1, n - 1):
         grey.append(fr["rgb"][k + 1].astype(np.float32).mean(-1) / 255.0)
-        moved = np.abs(grey[-1] - grey[-3]) > MOTION_GREY
+        moved = np.abs(grey[2] - grey[0]) > MOTION_GREY
         if moved.sum() < MOTION_MIN_PIXELS:
             continue
         u, v = np.round(uv[k]).astype(int) if np.isfinite(uv[k]).all() else (-1, -1)
@@ -86,11 +88,11 @@ def ee_in_image(g: h5py.Group) -> dict:
             continue
         still = cv2.distanceTransform((~moved).astype(np.uint8), cv2.DIST_L2, 3)
         gaps.append(float(still[v, u]) / w)
-    frames = len(gaps) + outside
-    out["ee_motion_frames"] = frames
-    if frames:
-        out["ee_outside"] = outside / frames
-        out["ee_motion_gap"] = float(np.median(gaps)) if gaps else None
+    out["ee_motion_frames"] = len(gaps)
+    if gaps or outside:
+        out["ee_outside"] = outside / (len(gaps) + outside)
+    if gaps:
+        out["ee_motion_gap"] = float(np.median(gaps))
     return out
 
 
