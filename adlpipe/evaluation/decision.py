@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from ..sim.tasks import FORCE_LIMIT_N
+from .latency import POLICY_NAMES
 from .sequential import BettingTest, PairedComparison
 
 
@@ -200,7 +201,7 @@ def decide_replay(ev: dict, rp: dict, rule: Rule = Rule()) -> dict | None:  # no
     return decide({p: rp["per_episode"][p] for p in latency}, force, latency, rule)
 
 
-SHORT_NAMES = {"fm_cnn/euler-1": "FM-1", "dp_cnn/ddpm-16": "DP-16", "bc_cnn": "BC"}
+SHORT_NAMES = {**POLICY_NAMES, "bc_cnn": "BC"}
 MEANING = {"FM-1": "flow matching, one Euler step", "DP-16": "Diffusion Policy, 16 DDPM steps",
            "BC": "behaviour cloning"}
 
@@ -236,10 +237,9 @@ def decision_lines(ev: dict, rp: dict) -> list[str]:
     slowest = max(others, key=lambda c: ms.get(c) or 0.0) if others else None
     first = f"**The default run ends in a decision: deploy {name[r]}**" + \
         (f" ({MEANING[name[r]]})" if name[r] in MEANING else "")
-    rest = (f". Replay ran fresh scenes until the rule was decided ({when}): {safety}, and {pct(r)} was resolved "
-            f"not worse than {' or '.join(pct(c) for c in others)} by more than {100 * rule.margin:.0f} points"
-            if others else f". Replay ran fresh scenes until the rule was decided ({when}): {safety}; {pct(r)} "
-            "was the only candidate left")
+    rest = f". Replay ran fresh scenes until the rule was decided ({when}): {safety}" + (
+        f", and {pct(r)} was resolved not worse than {' or '.join(pct(c) for c in others)} by more than "
+        f"{100 * rule.margin:.0f} points" if others else f"; {pct(r)} was the only candidate left")
     speed = (f", at {ms[r]:.1f} ms per plan against {name[slowest]}'s {ms[slowest]:.1f}."
              if slowest and ms.get(r) is not None and ms.get(slowest) is not None else ".")
     return textwrap.wrap(first + rest + speed, 115, break_on_hyphens=False)
