@@ -61,10 +61,10 @@ def recordings(root: Path, defects: dict, seed: int) -> tuple[dict[str, str], li
     victims = others[:: max(1, len(others) // max(1, len(singles)))][: len(singles)]  # spread over the tasks
     planted_at = {}
     for bag, defect in zip(victims, singles, strict=True):
-        if defect in DEFECTS_HELDOUT:  # a donor: the next episode of the same task
-            stem, k = bag.stem.rsplit("_", 1)
-            donor = clean / f"{stem}_{(int(k) + 1) % EPISODES_PER_TASK:04d}.mcap"
-            plant_heldout(bag, planted / bag.name, defect, donor if defect in NEEDS_DONOR else None)
+        if defect in DEFECTS_HELDOUT:
+            stem, k = bag.stem.rsplit("_", 1)  # a donor: the next episode of the same task
+            donor = clean / f"{stem}_{(int(k) + 1) % EPISODES_PER_TASK:04d}.mcap" if defect in NEEDS_DONOR else None
+            plant_heldout(bag, planted / bag.name, defect, donor)
         else:
             plant(bag, planted / bag.name, defect)
         planted_at[bag.name] = defect
@@ -78,23 +78,31 @@ def recordings(root: Path, defects: dict, seed: int) -> tuple[dict[str, str], li
     return planted_at, [b.name for b in bags if b.name not in planted_at and b.name not in originals]
 
 
-def doctor_flags(root: Path, robot: Path | None = None) -> dict[str, list[str]]:
-    """Bag name -> the doctor's flags on its episode (and bag_of_episode.json for the peers on the export); with the
-    robot's model (doctor --robot-mjcf) when `robot` is given."""
+def ingest(root: Path) -> dict[str, str]:
+    """Ingest the bags (the refused ones named on stderr and left out) into root/adl.h5; bag name -> ingest's line for
+    each refused bag, and bag_of_episode.json for the peers on the export."""
     import h5py
 
     data = root / "adl.h5"
-    ingest = adlpipe("adlpipe.ingest", *map(str, sorted((root / "bags").glob("*.mcap"))), "-o", str(data), "--size",
-                     "64", "--skip-bad", ok=(0, 1))  # 1: some bags refused (named on stderr), the rest written
-    refused = {Path(line.split(": ")[2]).name: line for line in ingest.stderr.splitlines() if "skipped bad bag" in line}
+    proc = adlpipe("adlpipe.ingest", *map(str, sorted((root / "bags").glob("*.mcap"))), "-o", str(data), "--size",
+                   "64", "--skip-bad", ok=(0, 1))  # 1: some bags refused (named on stderr), the rest written
+    refused = {Path(line.split(": ")[2]).name: line for line in proc.stderr.splitlines() if "skipped bad bag" in line}
     for line in refused.values():
         print(f"  {line}")
-    report = root / ("doctor_robot.json" if robot else "doctor.json")
-    adlpipe("adlpipe.doctor", str(data), "--json", str(report), *(["--robot-mjcf", str(robot)] if robot else []))
-    figs = json.loads(report.read_text())["episodes"]
     with h5py.File(data) as f:
         bag_of = {n: Path(str(f["episodes"][n].attrs["source_path"])).name for n in f["episodes"]}
     (root / "bag_of_episode.json").write_text(json.dumps(bag_of))
+    return refused
+
+
+def doctor_flags(root: Path, refused: dict[str, str], robot: Path | None = None) -> dict[str, list[str]]:
+    """Bag name -> the doctor's flags on its episode, or "refused at ingest"; with the robot's model (doctor
+    --robot-mjcf) when `robot` is given."""
+    report = root / ("doctor_robot.json" if robot else "doctor.json")
+    adlpipe("adlpipe.doctor", str(root / "adl.h5"), "--json", str(report),
+            *(["--robot-mjcf", str(robot)] if robot else []))
+    figs = json.loads(report.read_text())["episodes"]
+    bag_of = json.loads((root / "bag_of_episode.json").read_text())
     return {bag_of[n]: fig["flags"] for n, fig in figs.items()} | {bag: ["refused at ingest"] for bag in refused}
 
 
@@ -135,14 +143,16 @@ def main() -> None:
     root.mkdir(parents=True, exist_ok=True)
     kinds, seed = SETS[a.set]
     defects, clean = recordings(root, kinds, seed)
-    flags = doctor_flags(root)
-    tools: dict[str, Findings | str] = {"adlpipe doctor": {b: {f.split(":")[0] for f in fl} for b, fl in flags.items()}}
+    refused = ingest(root)
+    rows_of: dict[str, Path | None] = {"adlpipe doctor": None}
     if a.robot:  # the robot's model too (what a lab with a URDF or MJCF of its arm runs)
         from adlpipe.sim.world import arm_mjcf
 
         (root / "arm.xml").write_text(arm_mjcf())
-        with_robot = doctor_flags(root, root / "arm.xml")
-        tools["adlpipe doctor --robot-mjcf"] = {b: {f.split(":")[0] for f in fl} for b, fl in with_robot.items()}
+        rows_of["adlpipe doctor --robot-mjcf"] = root / "arm.xml"
+    tools: dict[str, Findings | str] = {
+        tool: {b: {f.split(":")[0] for f in fl} for b, fl in doctor_flags(root, refused, robot).items()}
+        for tool, robot in rows_of.items()}
     tools.update(peer_findings(a.peers, root))
     rows: dict[str, tuple[dict, int] | str] = {}
     for tool, findings in tools.items():
