@@ -3,6 +3,7 @@ an option renamed or removed fails here, not in a newcomer's terminal."""
 
 from __future__ import annotations
 
+import functools
 import importlib
 import re
 import shlex
@@ -86,6 +87,7 @@ def test_readme_stays_a_front_page() -> None:
 PIPELINES = [REPO, *sorted(p.parent for p in (REPO / "pipelines").glob("*/dvc.yaml"))]
 
 
+@functools.cache
 def _stages(where: Path) -> list:
     from dvc.repo import Repo
 
