@@ -27,7 +27,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 from doctor_peers import Findings, peer_findings  # noqa: E402
-from plant_defects import COPIES, DEFECTS, DEFECTS_E2, DEFECTS_E3, plant  # noqa: E402
+from plant_defects import COPIES, DEFECTS, DEFECTS_E2, DEFECTS_E3, OTHER_TASK_DONOR, plant  # noqa: E402
 from plant_heldout import DEFECTS_HELDOUT, NEEDS_DONOR, plant_heldout  # noqa: E402
 
 EPISODES_PER_TASK = 3
@@ -65,6 +65,10 @@ def recordings(root: Path, defects: dict, seed: int) -> tuple[dict[str, str], li
             stem, k = bag.stem.rsplit("_", 1)  # a donor: the next episode of the same task
             donor = clean / f"{stem}_{(int(k) + 1) % EPISODES_PER_TASK:04d}.mcap" if defect in NEEDS_DONOR else None
             plant_heldout(bag, planted / bag.name, defect, donor)
+        elif defect in OTHER_TASK_DONOR:  # the first episode of the next task (in the bags' order)
+            stem = bag.stem.rsplit("_", 1)[0]
+            donor = next(b for b in bags[bags.index(bag):] + bags if not b.name.startswith(stem))
+            plant(bag, planted / bag.name, defect, donor)
         else:
             plant(bag, planted / bag.name, defect)
         planted_at[bag.name] = defect

@@ -24,6 +24,7 @@ TF = "/tf"
 TF_STATIC = "/tf_static"
 JOINTS = "/joint_states"
 TASK = "/adl/task"
+AFFORDANCE = "/adl/affordance"
 CAMERA_FRAME = "camera_color_optical_frame"
 GRIPPER = "finger_left"
 SPIKE_RAD = 1.0  # a joint sample this far off (an encoder glitch)
@@ -422,6 +423,22 @@ def joint_names_swapped(messages: list[Message]) -> list[Message]:
     return messages
 
 
+def affordance_from(donor: Path) -> Edit:
+    """This episode's affordance map replaced by another task's episode's (an annotation script that picked the
+    wrong episode's map), the image and everything else kept."""
+    maps = [m[3] for m in read(donor) if m[0] == AFFORDANCE]
+
+    def edit(messages: list[Message]) -> list[Message]:
+        for msg in _of(messages, (AFFORDANCE,)):
+            msg.data = maps[0].data
+        return messages
+    return edit
+
+
+def _needs_donor(messages: list[Message]) -> list[Message]:
+    raise ValueError("this defect is planted from a donor bag: plant(src, dst, defect, donor)")
+
+
 DEFECTS_E3: dict[str, tuple[Edit, str]] = {  # the kinds no issue had named, now checked: defect -> (edit, flag)
     "two frames swapped": (frames_swapped, "frame order"),
     "distortion k1 = 3": (nonsense_distortion, "camera lens"),
@@ -431,10 +448,13 @@ DEFECTS_E3: dict[str, tuple[Edit, str]] = {  # the kinds no issue had named, now
     "colour image mirrored": (mirrored_image, "depth registration"),
     "camera bumped 10 / 6 px": (camera_bumped, "depth registration"),
     "joint names swapped": (joint_names_swapped, "kinematics"),  # with the robot's model (doctor --robot-mjcf)
+    "affordance map of another task": (_needs_donor, "affordance map"),  # its donor: another task's episode
 }
+OTHER_TASK_DONOR = {"affordance map of another task": affordance_from}  # defect -> its edit from the donor bag
 COPIES = ("near-duplicate episode", "time-reversed copy", "near-duplicate 0.2 mm")  # planted from another bag
 
 
-def plant(src: Path, dst: Path, defect: str) -> None:
-    edit = (DEFECTS | DEFECTS_E2 | DEFECTS_E3)[defect][0]
+def plant(src: Path, dst: Path, defect: str, donor: Path | None = None) -> None:
+    edits = DEFECTS | DEFECTS_E2 | DEFECTS_E3
+    edit = OTHER_TASK_DONOR[defect](donor) if defect in OTHER_TASK_DONOR else edits[defect][0]
     write(dst, edit(list(read(src))))

@@ -1,6 +1,6 @@
 """The doctor's cross-modal and cross-episode checks (issue E2) on recorded bags with defects planted by the real
 writer (bench/plant_defects.py): each planted defect carries the flag that names it, the clean episodes none, with
-6 episodes per task, the doctor given the recording robot's model."""
+7 episodes per task, the doctor given the recording robot's model."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 from conftest import REPO, run_module
 
 sys.path.insert(0, str(REPO / "bench"))
-from plant_defects import plant  # noqa: E402
+from plant_defects import OTHER_TASK_DONOR, plant  # noqa: E402
 from plant_heldout import DEFECTS_HELDOUT, plant_heldout  # noqa: E402
 
 from adlpipe.sim.world import arm_mjcf  # noqa: E402
@@ -40,18 +40,26 @@ PLANTED = {  # bag -> (defect, the flag that must name it)
     # the end effector against where the image changes (added after the held-out measurement, which missed these)
     "pass_the_water_0004.mcap": ("extrinsics in mm", "end effector not in image"),
     "cover_the_food_0004.mcap": ("extrinsics quaternion wxyz", "end effector not in image"),
+    # the affordance map against where the end effector acts: the map of a table task's episode on a face task's
+    "wipe_the_nose_0004.mcap": ("affordance map of another task", "affordance map"),
+    # two held-out kinds the first held-out measurement missed
+    "brush_the_teeth_0004.mcap": ("each frame written 3 times", "repeated frames"),
+    "brush_the_teeth_0005.mcap": ("depth holes", "depth holes"),
 }
+DONOR = "pass_the_water_0005.mcap"  # the other task's episode whose map is planted (itself clean)
 
 
 @pytest.fixture(scope="module")
 def doctored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
     root = tmp_path_factory.mktemp("doctor_checks")
-    run_module("record", "--episodes", "6", "--tasks", *TASKS, "--size", "48", "--camera-hz", "10", "--out",
+    run_module("record", "--episodes", "7", "--tasks", *TASKS, "--size", "48", "--camera-hz", "10", "--out",
                root / "clean", "--seed", "3", check=True)
     (root / "bags").mkdir()
     for bag in sorted((root / "clean").glob("*.mcap")):
         if bag.name in PLANTED and PLANTED[bag.name][0] in DEFECTS_HELDOUT:
             plant_heldout(bag, root / "bags" / bag.name, PLANTED[bag.name][0])
+        elif bag.name in PLANTED and PLANTED[bag.name][0] in OTHER_TASK_DONOR:
+            plant(bag, root / "bags" / bag.name, PLANTED[bag.name][0], root / "clean" / DONOR)
         elif bag.name in PLANTED:
             plant(bag, root / "bags" / bag.name, PLANTED[bag.name][0])
         else:
@@ -67,11 +75,11 @@ def doctored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
 
 
 def test_each_planted_defect_is_named_and_no_clean_episode_is_flagged(doctored: dict[str, list[str]]) -> None:
-    assert len(doctored) == 24
+    assert len(doctored) == 28
     for bag, (defect, flag) in PLANTED.items():
         assert flag in doctored[bag], (defect, doctored[bag])
     clean = {bag: flags for bag, flags in doctored.items() if bag not in PLANTED}
-    assert len(clean) == 6 and not any(clean.values()), clean
+    assert len(clean) == 7 and not any(clean.values()), clean
 
 
 @pytest.mark.parametrize("frames", [1, 2])

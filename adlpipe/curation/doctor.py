@@ -20,6 +20,7 @@ from ..dataset.frames import nearest_index
 from ..geometry.transforms import path_at
 from .doctor_checks import (
     Kinematics,
+    affordance_on_path,
     by_task,
     camera_figures,
     dataset_flags,
@@ -52,10 +53,16 @@ class Limits:
     idle_speed_mps: float = 0.01  # the arm is idle while its end effector is slower than this
     idle_s: float = 1.0  # idle this long at the start or the end of an episode is flagged
     frozen_frames: int = 5  # this many identical consecutive camera frames: a frozen camera
+    repeated_share: float = 0.3  # this share of the frames identical to the one before (in shorter runs): each
+    #                              frame written more than once, the stamps running faster than the camera (clean:
+    #                              none over 200 default and 106 bench recordings; written 3 times: 0.67)
     gap_factor: float = 3.0  # a frame interval this many times the median one: a dropped stretch
     max_speed_mps: float = 2.0  # an end effector faster than this is a tf glitch, not a motion
     max_tf_gap_s: float = 0.2  # a longer gap between end-effector tf samples
     depth_holes: float = 0.5  # a larger share of depth pixels without a return
+    holes_excess: float = 0.1  # or this much more of them than the dataset's median (a lens smeared or a
+    #                            projector failing in one episode; clean: within 0.019 of the median over 200
+    #                            default and 106 bench recordings, whose background gives 26-29 % holes)
     z: float = 3.5  # robust z-score (median and scaled MAD within the task) beyond which a figure is an outlier
     outlier_share: float = 0.25  # ... and it must also lie this share of the median away (a task whose episodes
     #                              are nearly alike has a tiny MAD: 0.57 against 0.56 m/s is not a problem)
@@ -94,6 +101,10 @@ class Limits:
     #                              changed: K, extrinsics, the image or its focus disagree with tf (clean:
     #                              at most 0.018 over 200 recordings at 128 px and 104 at 64 px; planted: a camera
     #                              translation in mm 0.21, its rotation as wxyz 0.12, a mirrored image 0.10)
+    affordance_dwell: float = 0.4  # the end effector's dwell frames on the affordance map's region in less than
+    #                                this share: a map from another episode or task (clean: at least 0.55 over
+    #                                200 recordings at 128 px, 0.56 over 106 at 64 px; another task's map: below
+    #                                it in 79 % of pairs: bench/affordance_pairs.py)
     registration_gain: float = 0.05  # ... matching better there than at no shift by this much (planted: 0.074 or
     #                                  more; a colour image and a depth image with nothing in common: 0.031)
     # doctor_checks: against the dataset's medians (3 episodes per task are enough)
@@ -139,6 +150,7 @@ def episode_figures(g: h5py.Group, limits: Limits = Limits(), robot: Kinematics 
     fig.update(image_figures(fr))
     fig.update(registration(g))
     fig.update(ee_in_image(g))
+    fig.update(affordance_on_path(g))
     fig.update(kinematics(g, robot))
     fig.update(joint_units(g))
     fig["end_speed_mps"] = end_speed(ee_t, ee_pos, duration)
@@ -252,6 +264,10 @@ def _depth_holes(fr: h5py.Group) -> float | None:
 def flags(fig: dict, tolerance: float, limits: Limits) -> list[str]:
     """The episode's problems, each with the figure and the threshold that raised it."""
     out = []
+    share = fig["repeated_frames"] / max(fig["frames"], 1)
+    if share > limits.repeated_share:
+        out.append(f"repeated frames: {share:.0%} of the frames repeat the one before (limit "
+                   f"{limits.repeated_share:.0%}): each camera frame written more than once?")
     if fig["frozen_run"] >= limits.frozen_frames:
         out.append(f"frozen camera: {fig['frozen_run']} identical frames in a row from {fig['frozen_at_s']:.2f} s "
                    f"(limit {limits.frozen_frames})")
@@ -313,6 +329,10 @@ def unit_flags(fig: dict, limits: Limits) -> list[str]:
         out.append(f"end effector not in image: the camera model puts it {gap * width:.1f} px from any pixel that "
                    f"changed (median of {seen} frames; limit {limits.ee_motion_gap:.0%} of {width} px): K, "
                    "extrinsics (rotation order, units), the image's orientation or its focus disagree with tf?")
+    aff = fig["affordance_dwell"]
+    if aff is not None and aff < limits.affordance_dwell:
+        out.append(f"affordance map: the end effector acts on the map's marked region in {aff:.0%} of the frames "
+                   f"where it slows (limit {limits.affordance_dwell:.0%}): a map from another episode or task?")
     if fig["order_ratio"] is not None and fig["order_ratio"] < limits.frame_swap:
         out.append(f"frame order: the frames at {fig['order_at_s']:.2f} s change the image {fig['order_ratio']:.2f}x "
                    f"as much swapped back as stored (limit {limits.frame_swap}): two frames stored out of order?")

@@ -10,7 +10,8 @@ rate, a gripper that never moves in a task whose other episodes grasp, a path ne
 its own (a wrong label), and a time-reversed copy of another episode. The frames' order against their motion
 (two frames swapped) and the lens model against the image (distortion no real lens has); the command's timing
 against the arm's is doctor_signals.command_lag; the depth image's edges against the colour image's (registration);
-the end effector projected by the camera model against where the image changes (ee_in_image). Not caught: a camera
+the end effector projected by the camera model against where the image changes (ee_in_image); the affordance map
+against where the end effector slows to act (affordance_on_path). Not caught: a camera
 moved a few centimetres after calibration (stale extrinsics; docs/guide/curation.md). Each threshold is a field of
 doctor.Limits.
 """
@@ -93,6 +94,45 @@ def ee_in_image(g: h5py.Group) -> dict:
         out["ee_outside"] = outside / (len(gaps) + outside)
     if gaps:
         out["ee_motion_gap"] = float(np.median(gaps))
+    return out
+
+
+AFFORDANCE_REGION = 0.5  # the map's region: its pixels at this share of its peak or more
+AFFORDANCE_NEAR = 0.04  # an end-effector point this share of the image's width from the region is on it
+DWELL_SPEED = 0.3  # the end effector slower than this share of its peak speed, away from the episode's first and
+DWELL_EDGE = 0.1  # last tenth (the arm at rest before and after), is where it acts
+AFFORDANCE_MIN_DWELL = 3  # dwell frames in the image needed to judge the map
+
+
+def affordance_on_path(g: h5py.Group) -> dict:
+    """The affordance map against the demonstration: the share of the frames where the end effector slows to act
+    (below DWELL_SPEED of its peak speed, the first and last tenth of the episode aside) whose projection lies on the
+    map's marked region. A map marks where the action touches, so a demonstration works inside it; a map from
+    another task's episode (another part of the manikin, another object) leaves most of them outside. None without
+    a map, or with fewer than AFFORDANCE_MIN_DWELL such frames in the image."""
+    out: dict = {"affordance_dwell": None}
+    m = g["affordance"][()] if "affordance" in g and g.attrs.get("has_affordance", True) else None
+    fr = g["frames"]
+    if m is None or not np.isfinite(m).all() or m.max() <= 0 or len(fr["t"]) < 5:
+        return out
+    t, ee = fr["t"][()], fr["ee_pos"][()].astype(float)
+    speed = np.r_[0.0, np.linalg.norm(np.diff(ee, axis=0), axis=1) / np.maximum(np.diff(t), 1e-6)]
+    speed = np.convolve(speed, np.ones(3) / 3, "same")
+    span = t[-1] - t[0]
+    mid = (t > t[0] + DWELL_EDGE * span) & (t < t[-1] - DWELL_EDGE * span)
+    if not mid.any() or speed[mid].max() <= 0:
+        return out
+    dwell = mid & (speed < DWELL_SPEED * speed[mid].max())
+    h, w = fr["rgb"].shape[1:3]
+    uv = project(ee[dwell], g["K"][()], g["T_base_camera"][()], read_lens(g), (w, h))
+    uv = uv[np.isfinite(uv).all(1)] * [m.shape[1] / w, m.shape[0] / h]
+    u, v = np.round(uv).astype(int).T
+    inside = (u >= 0) & (u < m.shape[1]) & (v >= 0) & (v < m.shape[0])
+    if inside.sum() < AFFORDANCE_MIN_DWELL:
+        return out
+    region = (m >= AFFORDANCE_REGION * m.max()).astype(np.uint8)
+    dist = cv2.distanceTransform(1 - region, cv2.DIST_L2, 3) / m.shape[1]
+    out["affordance_dwell"] = float((dist[v[inside], u[inside]] <= AFFORDANCE_NEAR).mean())
     return out
 
 
@@ -267,6 +307,8 @@ def dataset_flags(figs: dict[str, dict], paths: dict[str, np.ndarray], limits) -
     fps = np.array([figs[n]["fps"] for n in names])
     end = np.array([figs[n]["end_speed_mps"] for n in names])
     med_bright, med_fps, med_end = float(np.median(bright)), float(np.median(fps)), float(np.median(end))
+    holes = [figs[n]["depth_holes"] for n in names if figs[n]["depth_holes"] is not None]
+    med_holes = float(np.median(holes)) if len(holes) >= 3 else None
     for k, n in enumerate(names):
         f = figs[n]
         as_is, swapped = np.abs(rgb[k] - med_rgb).sum(), np.abs(rgb[k][::-1] - med_rgb).sum()
@@ -280,6 +322,10 @@ def dataset_flags(figs: dict[str, dict], paths: dict[str, np.ndarray], limits) -
             f["flags"].append(f"cut off: the end effector still moves at {end[k]:.2f} m/s over the last 0.3 s, where "
                               f"the dataset's episodes end at {med_end:.2f} m/s (median; limit "
                               f"{limits.end_speed_mps} m/s and 3x the median)")
+        h = f["depth_holes"]
+        if med_holes is not None and h is not None and limits.depth_holes >= h > med_holes + limits.holes_excess:
+            f["flags"].append(f"depth holes: {h:.0%} of depth pixels have no return against the dataset's median "
+                              f"{med_holes:.0%} (limit {limits.holes_excess:.0%} more)")
         if fps[k] < limits.slow_camera * med_fps:
             f["flags"].append(f"camera rate: {fps[k]:.1f} fps against the dataset's median {med_fps:.1f} "
                               f"(limit {limits.slow_camera:.0%} of it)")
