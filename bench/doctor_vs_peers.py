@@ -29,10 +29,12 @@ sys.path.insert(0, str(REPO / "bench"))
 from doctor_peers import Findings, peer_findings  # noqa: E402
 from plant_defects import COPIES, DEFECTS, DEFECTS_E2, DEFECTS_E3, OTHER_TASK_DONOR, plant  # noqa: E402
 from plant_heldout import DEFECTS_HELDOUT, NEEDS_DONOR, plant_heldout  # noqa: E402
+from plant_heldout2 import DEFECTS_HELDOUT2, NEEDS_DONOR2, plant_heldout2  # noqa: E402
 
 EPISODES_PER_TASK = 3
 COPY_TASKS = ("brush_the_teeth", "comb_the_hair", "feed_the_human")  # a copy's third bag is its first, edited
 SETS = {"first": (DEFECTS, 7), "e2": (DEFECTS_E2, 11), "e3": (DEFECTS_E3, 19), "heldout": (DEFECTS_HELDOUT, 17),
+        "heldout2": (DEFECTS_HELDOUT2, 23),
         "clean": ({}, 13)}  # set -> (its defects, recording seed)
 
 
@@ -61,12 +63,13 @@ def recordings(root: Path, defects: dict, seed: int) -> tuple[dict[str, str], li
     victims = others[:: max(1, len(others) // max(1, len(singles)))][: len(singles)]  # spread over the tasks
     planted_at = {}
     for bag, defect in zip(victims, singles, strict=True):
+        stem, k = bag.stem.rsplit("_", 1)
+        next_of_task = clean / f"{stem}_{(int(k) + 1) % EPISODES_PER_TASK:04d}.mcap"  # a donor of the same task
         if defect in DEFECTS_HELDOUT:
-            stem, k = bag.stem.rsplit("_", 1)  # a donor: the next episode of the same task
-            donor = clean / f"{stem}_{(int(k) + 1) % EPISODES_PER_TASK:04d}.mcap" if defect in NEEDS_DONOR else None
-            plant_heldout(bag, planted / bag.name, defect, donor)
+            plant_heldout(bag, planted / bag.name, defect, next_of_task if defect in NEEDS_DONOR else None)
+        elif defect in DEFECTS_HELDOUT2:
+            plant_heldout2(bag, planted / bag.name, defect, next_of_task if defect in NEEDS_DONOR2 else None)
         elif defect in OTHER_TASK_DONOR:  # the first episode of the next task (in the bags' order)
-            stem = bag.stem.rsplit("_", 1)[0]
             donor = next(b for b in bags[bags.index(bag):] + bags if not b.name.startswith(stem))
             plant(bag, planted / bag.name, defect, donor)
         else:
@@ -139,6 +142,7 @@ def main() -> None:
                    help="first: the 8 defects of issue E.3; e2: the 13 of issue E2 (clock, calibration, units, "
                    "labels, copies), recorded with another seed; e3: the kinds issue E3 named that the doctor now "
                    "checks; heldout: 14 kinds no issue named, from labs' public reports (bench/plant_heldout.py); "
+                   "heldout2: 14 more, planted after this session's checks (bench/plant_heldout2.py); "
                    "clean: 30 clean episodes (false flags only)")
     p.add_argument("--robot", action="store_true", help="also run the doctor with the recording arm's model "
                    "(--robot-mjcf), as its own row")
