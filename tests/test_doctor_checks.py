@@ -11,7 +11,7 @@ from pathlib import Path
 
 import h5py
 import pytest
-from conftest import REPO, run_module
+from conftest import REPO, copy_dataset, one_line_error, run_module
 
 sys.path.insert(0, str(REPO / "bench"))
 from plant_defects import OTHER_TASK_DONOR, plant  # noqa: E402
@@ -104,3 +104,26 @@ def test_an_episode_of_one_or_two_frames_is_doctored_and_exported_as_video(mcap_
     assert export.returncode == 0 and "tmp" not in export.stderr, export.stderr
     info = json.loads((tmp_path / "lerobot" / "meta" / "info.json").read_text())
     assert info["total_frames"] == frames
+
+
+def test_image_stamps_that_do_not_advance_are_refused_and_never_crash_a_stage(mcap_bags: list[Path], ingested: Path,
+                                                                               tmp_path: Path) -> None:
+    """ros-drivers/camera1394#35 (planted by bench/plant_heldout2.py): a driver whose image stamps stopped. Ingest
+    refuses the bag in one line naming the topic; a dataset that holds such an episode anyway (written by an older
+    ingest or another tool) is doctored without a traceback, and export refuses it in one line naming it."""
+    from plant_heldout2 import plant_heldout2
+
+    frozen = tmp_path / "frozen.mcap"
+    plant_heldout2(mcap_bags[0], frozen, "image stamps frozen")
+    line = one_line_error(run_module("ingest", frozen, "-o", tmp_path / "x.h5", "--size", "64"))
+    assert "/camera/color/image_raw" in line and "do not advance" in line
+    assert not (tmp_path / "x.h5").exists()
+    data = copy_dataset(ingested, tmp_path / "adl.h5")
+    with h5py.File(data, "r+") as f:  # the index links each episode's file: written through the link
+        name = sorted(f["episodes"])[0]
+        f["episodes"][name]["frames"]["t"][...] = 0.0
+    doctored = run_module("doctor", data, "--json", tmp_path / "d.json")
+    assert doctored.returncode == 0 and "Traceback" not in doctored.stderr, doctored.stderr
+    line = one_line_error(run_module("export", data, tmp_path / "lerobot"))
+    assert name in line and "do not advance" in line
+    assert not (tmp_path / "lerobot").exists()

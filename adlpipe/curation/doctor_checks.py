@@ -277,6 +277,8 @@ def frame_figures(g: h5py.Group, ee_t: np.ndarray, ee_pos: np.ndarray) -> dict:
     speed_t = (ee_t[1:] + ee_t[:-1]) / 2
     speed = np.linalg.norm(np.diff(ee_pos, axis=0), axis=1) / np.maximum(np.diff(ee_t), 1e-6)
     step = float(np.median(np.diff(t))) / 4
+    if step <= 0:  # image stamps that do not advance: no clock to compare (the frame rate check names them)
+        return out
     out["clock_lag_s"], out["clock_r"] = best_lag(m, lambda lag: np.interp(mid - lag, speed_t, speed),
                                                   np.arange(-CLOCK_MAX_LAG_S, CLOCK_MAX_LAG_S + 1e-9, step))
     return out

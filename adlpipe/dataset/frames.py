@@ -211,6 +211,10 @@ class FrameWriter:
                 rgb[i] = rgb[i + first]
             rgb.resize(keep - first, axis=0)
         t = t[first:keep]
+        repeats = int(np.sum(np.diff(t) <= 0))
+        if len(t) > 2 and repeats > len(t) // 2:  # a driver whose stamps stopped: no frame can be placed in time
+            raise AdlError(f"{where}: {repeats} of {len(t)} images carry the stamp of the one before (the camera's "
+                           "stamps do not advance); restamp the images or re-record")
         self.early = first
         self.g.create_dataset("t", data=t)
         return t

@@ -194,7 +194,11 @@ def plan(f: h5py.File, names: list[str], video: bool = True, maps: str = "png") 
         intervention |= "intervention" in fr
         t = fr["t"][()]
         if len(t) > 1:
-            rates.append(1.0 / float(np.median(np.diff(t))))
+            interval = float(np.median(np.diff(t)))
+            if interval <= 0:
+                raise AdlError(f"episode {n}: its frame stamps do not advance (median interval {interval} s); "
+                               "re-ingest its bag")
+            rates.append(1.0 / interval)
     fps = max(1, int(round(float(np.median(rates))))) if rates else 1
     several = cameras if cameras and len(cameras) > 1 else []
     keep = maps != "none"
