@@ -28,7 +28,7 @@ import sys
 from pathlib import Path
 
 from .envs.registry import BENCHMARKS
-from .evaluation.benchmark_runs import FIRST_SEED, BenchmarkConfig, run_benchmark
+from .evaluation.benchmark_runs import CLIP_CHOICES, FIRST_SEED, BenchmarkConfig, run_benchmark
 from .evaluation.benchmark_tables import compare, score_cell, success_cell
 from .plumbing.atomic import check_outputs
 from .plumbing.cli import SEED, Parser, config_from, int_range
@@ -51,6 +51,9 @@ def parse_args(argv: list[str] | None) -> BenchmarkConfig | list[Path]:
     p.add_argument("--dp-sampler", choices=DDPM.methods, default="ddpm",
                    help="Diffusion Policy's sampler (default ddpm, leading timesteps as Diffusion Policy; "
                    "ddim_trailing: deterministic, starting from the last timestep, the fair few-step choice)")
+    p.add_argument("--clip-sample", choices=CLIP_CHOICES, default="own",
+                   help="the clean-sample estimate held in [-1, 1] at every sampling step: own (each objective's "
+                   "default: Diffusion Policy's on, flow matching's off), on or off for every generative model alike")
     p.add_argument("--max-steps", type=int_range(1, 100_000),
                    help="end each policy episode after this many steps instead of the environment's limit (Push-T "
                    "300, Franka Kitchen 280): does more time let a policy finish? (the references keep the limit)")

@@ -103,6 +103,13 @@ def test_state_only_policies_train_and_run_the_kitchen_benchmark(kitchen_data: P
     table = (out / "t.md").read_text()
     assert details["max_steps"] == 12 and "at most 12 steps (the environment's limit is 280" in table
     assert "| fm_cnn | 2 | last |" in table and "microwave / kettle / light switch / slide cabinet" in table
+    # --clip-sample: the sampler's clipping set alike for every generative model, and named in its row
+    run_module("benchmark", "--env", "kitchen", "--models", tmp_path / "fm_cnn", tmp_path / "dp_cnn",
+               "--steps", "2", "--clip-sample", "on", "--checkpoints", "last", "--episodes", "1",
+               "--max-steps", "4", "--metrics", out / "m2.json", "--details", out / "d2.json",
+               "--table", out / "t2.md", check=True)
+    rows = {r["model"] for r in json.loads((out / "d2.json").read_text())["results"]}
+    assert rows == {"fm_cnn (clipped)", "dp_cnn (clipped)"}
 
 
 def test_the_kitchen_benchmark_refuses_an_image_policy(kitchen_data: Path, tmp_path: Path) -> None:

@@ -232,6 +232,20 @@ def test_one_euler_step_of_x_prediction_is_the_network_output() -> None:
     assert torch.allclose(x, target.expand(3, -1, -1), atol=1e-6)
 
 
+@pytest.mark.parametrize("steps", [1, 2, 16])
+def test_flow_matching_clips_its_clean_estimate_only_when_asked(steps: int) -> None:
+    """clip_sample (Diffusion Policy's, given to FM for a like-for-like lever): the x1 estimate held in [-1, 1] at
+    every step, so the plan ends inside the range; off (the default) the plan ends where the network says."""
+    target = torch.linspace(-3, 3, 32 * 5).reshape(1, 32, 5)
+    net = lambda x, t, c: target.expand_as(x)  # noqa: E731
+    gen = lambda: torch.Generator().manual_seed(0)  # noqa: E731
+    free = FlowMatching("x1").sample(net, torch.zeros(2, 1), (2, 32, 5), steps, "euler", gen())
+    held = FlowMatching("x1", clip_sample=True).sample(net, torch.zeros(2, 1), (2, 32, 5), steps, "euler", gen())
+    assert torch.allclose(free, target.expand(2, -1, -1), atol=1e-5)
+    assert torch.allclose(held, target.clamp(-1, 1).expand(2, -1, -1), atol=1e-5)
+    assert float(free.abs().max()) == pytest.approx(3.0) and float(held.abs().max()) == pytest.approx(1.0)
+
+
 def test_flow_matching_primitives() -> None:
     x0, x1 = torch.randn(4, 32, 5), torch.randn(4, 32, 5)
     t = torch.tensor([0.0, 0.25, 0.5, 0.9])

@@ -39,6 +39,7 @@ class BenchmarkConfig:
     curve_plot: Path | None = None  # with curve
     steps: list[int] = field(default_factory=lambda: [2, 16])  # sampling steps of the generative models
     dp_sampler: str = "ddpm"
+    clip_sample: str = "own"  # own (DDPM's clips, FM's does not), on, off: every generative model alike
     max_steps: int | None = None  # None: the environment's limit
     checkpoints: list[str] = field(default_factory=lambda: ["best", "last"])
     episodes: int = 50
@@ -51,6 +52,9 @@ class BenchmarkConfig:
     reference_episodes: int | None = None
 
 
+CLIP_CHOICES = ("own", "on", "off")
+
+
 @lru_cache(maxsize=8)
 def _policy(path: str) -> tuple:
     """A worker process's policy, loaded once for all the episodes it runs."""
@@ -60,10 +64,12 @@ def _policy(path: str) -> tuple:
 def _episode(job: tuple) -> tuple[str, str | int, int, dict]:
     from ..policy.inference import predict
 
-    env, name, checkpoint, path, steps, method, seed, execute, max_steps = job
+    env, name, checkpoint, path, steps, method, seed, execute, max_steps, clip = job
     torch.set_num_threads(1)
     placement = Placement()
     policy, ck = _policy(path)
+    if clip != "own" and hasattr(policy.objective, "clip"):
+        policy.objective.clip = clip == "on"
     cfg, norm, gen = policy.cfg, Normalizer(ck["stats"]), placement.generator(seed)
     blank = np.zeros((cfg.image_size, cfg.image_size), np.float32)
     seconds: list[float] = []
@@ -83,6 +89,7 @@ def _episode(job: tuple) -> tuple[str, str | int, int, dict]:
     outcome = BENCHMARKS[env].env().run_policy(plan, seed, execute, cfg.n_obs, max_steps=max_steps,
                                                state_only=not cfg.use_image)
     label = name + (f" ({method})" if method not in (None, "ddpm") else "")
+    label += {"on": " (clipped)", "off": " (unclipped)"}.get(clip, "") if hasattr(policy.objective, "clip") else ""
     return label, checkpoint, steps, {"seed": seed, **outcome, "ms": 1000.0 * float(np.median(seconds))}
 
 
@@ -161,11 +168,11 @@ def episode_jobs(c: BenchmarkConfig, bench: Benchmark) -> tuple[list[tuple], lis
         bc = cfg["model"].startswith("bc_")
         for steps in ([1] if bc else c.steps):
             jobs += [(c.env, name, ck, str(d / CHECKPOINTS[ck]), steps, method, c.seed + i, c.execute,
-                      c.max_steps) for ck in c.checkpoints for i in range(c.episodes)]
+                      c.max_steps, c.clip_sample) for ck in c.checkpoints for i in range(c.episodes)]
         if c.curve:
             steps = 1 if bc else c.curve_steps
             curve_jobs += [(c.env, name, n, str(path), steps, method, c.seed + i, c.execute,
-                            c.max_steps)
+                            c.max_steps, c.clip_sample)
                            for n, path in curve_checkpoints(d)
                            for i in range(c.curve_episodes or c.episodes)]  # checkpoint: its step
     return jobs, curve_jobs

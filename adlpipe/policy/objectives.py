@@ -71,10 +71,13 @@ class FlowMatching:
     methods = ("euler", "midpoint", "rk4")
     predictions = ("x1", "velocity")
 
-    def __init__(self, prediction: str = "x1") -> None:
+    def __init__(self, prediction: str = "x1", clip_sample: bool = False) -> None:
         if prediction not in self.predictions:
             raise ValueError(f"unknown flow-matching prediction {prediction!r}; use one of {self.predictions}")
         self.prediction = prediction
+        # Diffusion Policy's clip_sample, FM's equivalent (x1 output only): the clean-trajectory estimate held in
+        # the normalised range [-1, 1] at every step. Off by default (the paper's FM has none); DDPM's is on.
+        self.clip = clip_sample
 
     def loss(self, net: Denoiser, x1: torch.Tensor, cond: torch.Tensor, noise: Noise) -> torch.Tensor:
         x0, t = noise.eps, noise.u[:, 0]
@@ -92,7 +95,9 @@ class FlowMatching:
 
         def v(x: torch.Tensor, t: float) -> torch.Tensor:
             out = net(x, torch.full((b,), t * self.TIME_SCALE, device=x.device), cond)
-            return velocity_from_x1(out, x, t) if self.prediction == "x1" else out
+            if self.prediction != "x1":
+                return out
+            return velocity_from_x1(out.clamp(-1, 1) if self.clip else out, x, t)
 
         for i in range(steps):
             t = i * dt
