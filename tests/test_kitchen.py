@@ -4,12 +4,14 @@ record and ingest (59-D state and 9-D action per frame)."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import one_line_error, record_seeded_world, run_module
+from conftest import REPO, one_line_error, record_seeded_world, run_module
 
 from adlpipe.dataset import schema
 from adlpipe.geometry.transforms import project
@@ -77,15 +79,23 @@ def train(kitchen_data: Path, out: Path, model: str, *extra: str) -> None:
                "--image-size", "32", "--val-fraction", "0.5", check=True)
 
 
-def test_state_only_policies_train_and_run_the_kitchen_benchmark(kitchen_data: Path, tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def state_models(kitchen_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """FM-CNN, DP-CNN and BC-CNN on the 59-D state alone, two epochs each, in one folder."""
+    root = tmp_path_factory.mktemp("state_models")
     for model in ("fm_cnn", "dp_cnn", "bc_cnn"):
-        train(kitchen_data, tmp_path / model, model, "--no-image")
-    ck = torch.load(tmp_path / "fm_cnn" / "model.pt", weights_only=True)
+        train(kitchen_data, root / model, model, "--no-image")
+    return root
+
+
+def test_state_only_policies_train_and_run_the_kitchen_benchmark(state_models: Path, tmp_path: Path) -> None:
+    models = state_models
+    ck = torch.load(models / "fm_cnn" / "model.pt", weights_only=True)
     cfg = ck["config"]
     assert cfg["use_image"] is False and cfg["action_dim"] == 9 and cfg["state_dim"] == 2 * 59
     assert not any(k.startswith("encoder.") for k in ck["ema"])  # no image encoder at all
     out = tmp_path / "out"
-    run_module("benchmark", "--env", "kitchen", "--models", *(tmp_path / m for m in ("fm_cnn", "dp_cnn", "bc_cnn")),
+    run_module("benchmark", "--env", "kitchen", "--models", *(models / m for m in ("fm_cnn", "dp_cnn", "bc_cnn")),
                "--steps", "2", "--dp-sampler", "ddim_trailing", "--checkpoints", "last", "--episodes", "1",
                "--max-steps", "12", "--metrics", out / "m.json",
                "--details", out / "d.json", "--table", out / "t.md", check=True)
@@ -104,12 +114,36 @@ def test_state_only_policies_train_and_run_the_kitchen_benchmark(kitchen_data: P
     assert details["max_steps"] == 12 and "at most 12 steps (the environment's limit is 280" in table
     assert "| fm_cnn | 2 | last |" in table and "microwave / kettle / light switch / slide cabinet" in table
     # --clip-sample: the sampler's clipping set alike for every generative model, and named in its row
-    run_module("benchmark", "--env", "kitchen", "--models", tmp_path / "fm_cnn", tmp_path / "dp_cnn",
+    run_module("benchmark", "--env", "kitchen", "--models", models / "fm_cnn", models / "dp_cnn",
                "--steps", "2", "--clip-sample", "on", "--checkpoints", "last", "--episodes", "1",
                "--max-steps", "4", "--metrics", out / "m2.json", "--details", out / "d2.json",
                "--table", out / "t2.md", check=True)
     rows = {r["model"] for r in json.loads((out / "d2.json").read_text())["results"]}
     assert rows == {"fm_cnn (clipped)", "dp_cnn (clipped)"}
+
+
+def test_the_mechanism_measurement_reads_the_policies_own_windows(kitchen_data: Path, state_models: Path,
+                                                                 tmp_path: Path) -> None:
+    """pipelines/kitchen_levers/mechanism.py (issue L3) on the trained pair: the test episodes' windows in the
+    training format, every DDPM step with its matched flow time, and each sampler with and without clipping; a
+    clipped sampler's plans end inside [-1, 1] exactly (its last step lands on the clipped estimate)."""
+    out = tmp_path / "m.json"
+    subprocess.run([sys.executable, str(REPO / "pipelines" / "kitchen_levers" / "mechanism.py"),
+                    str(state_models / "fm_cnn"), str(state_models / "dp_cnn"),
+                    "--data", str(kitchen_data / "kitchen.h5"), "--split", str(kitchen_data / "split.json"),
+                    "--frames", "6", "--samples", "2", "--out", str(out), "--table", str(tmp_path / "m.md")],
+                   check=True, capture_output=True, text=True)
+    r = json.loads(out.read_text())
+    n_test = len(json.loads((kitchen_data / "split.json").read_text())["test"])
+    assert r["windows"] == 6 * n_test and sum(r["phases"].values()) == r["windows"]
+    ts = [f["t"] for f in r["fit"]]
+    assert [f["k"] for f in r["fit"]][0] == 0 and ts[0] > 0.9 and ts[-1] < 0.05 and ts == sorted(ts, reverse=True)
+    assert sum(b["dp"] for b in r["training_share"]) == pytest.approx(1.0)
+    rows = {(p["model"], p["steps"]): p["by_phase"]["all"] for p in r["plans"]}
+    assert set(rows) == {(m, s) for m in ("FM", "FM clipped", "DP", "DP unclipped") for s in (2, 16)}
+    for steps in (2, 16):
+        assert rows["FM clipped", steps]["outside"] == 0.0 and rows["DP", steps]["outside"] == 0.0
+    assert "| FM clipped | 16 |" in (tmp_path / "m.md").read_text()
 
 
 def test_the_kitchen_benchmark_refuses_an_image_policy(kitchen_data: Path, tmp_path: Path) -> None:
