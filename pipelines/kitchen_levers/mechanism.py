@@ -39,13 +39,21 @@ DDPM_STEPS = (0, 5, 10, 20, 30, 40, 50, 60, 70, 80, 90, 99)
 EXECUTED = 8  # Ta
 
 
-def phase(state: np.ndarray) -> str:
-    """The first sub-task of the demonstrator's order not done in this 59-D state (the environment's own test)."""
+def done_at(states: np.ndarray) -> dict[str, int]:
+    """Per sub-task, the first frame of an episode's 59-D states where the environment's own test holds (within
+    BONUS_THRESH of its goal); a task done stays done (as the environment counts it: the microwave door swings back
+    a little after it was opened). len(states) if never (the recording ends on the step that completes the last)."""
+    out = {}
     for task in ORDER:
-        idx = OBS_ELEMENT_INDICES[task] + QPOS_IN_OBS
-        if np.linalg.norm(state[idx] - OBS_ELEMENT_GOALS[task]) >= BONUS_THRESH:
-            return task
-    return "all done"
+        d = np.linalg.norm(states[:, OBS_ELEMENT_INDICES[task] + QPOS_IN_OBS] - OBS_ELEMENT_GOALS[task], axis=1)
+        hit = np.flatnonzero(d < BONUS_THRESH)
+        out[task] = int(hit[0]) if len(hit) else len(states)
+    return out
+
+
+def phase(done: dict[str, int], k: int) -> str:
+    """The first sub-task of the demonstrator's order not yet done at frame k."""
+    return next((task for task in ORDER if done[task] > k), "all done")
 
 
 def test_windows(data: Path, names: list[str], stats: dict, per_episode: int) -> tuple[tuple, torch.Tensor, list]:
@@ -53,7 +61,8 @@ def test_windows(data: Path, names: list[str], stats: dict, per_episode: int) ->
     frames of each test episode."""
     ds = WindowDataset(data, names, stats, 32, Windows(2, 16, 10.0, "action", False), frames_per_episode=per_episode)
     items = [ds[i] for i in range(len(ds))]
-    phases = [phase(ds.episode_meta(e)["state"][k]) for e, k in ds.items]
+    done = {e: done_at(ds.episode_meta(e)["state"]) for e in {e for e, _ in ds.items}}
+    phases = [phase(done[e], k) for e, k in ds.items]
     return collate_obs([o for o, _ in items]), torch.stack([a for _, a in items]), phases
 
 
