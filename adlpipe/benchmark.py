@@ -31,7 +31,7 @@ from .envs.registry import BENCHMARKS
 from .evaluation.benchmark_runs import CLIP_CHOICES, FIRST_SEED, BenchmarkConfig, run_benchmark
 from .evaluation.benchmark_tables import compare, score_cell, success_cell
 from .plumbing.atomic import check_outputs
-from .plumbing.cli import SEED, Parser, config_from, int_range
+from .plumbing.cli import SEED, Parser, config_from, float_range, int_range
 from .plumbing.errors import AdlError, run_cli
 from .policy.checkpoint import CHECKPOINTS
 from .policy.objectives import DDPM
@@ -54,6 +54,9 @@ def parse_args(argv: list[str] | None) -> BenchmarkConfig | list[Path]:
     p.add_argument("--clip-sample", choices=CLIP_CHOICES, default="own",
                    help="the clean-sample estimate held in [-1, 1] at every sampling step: own (each objective's "
                    "default: Diffusion Policy's on, flow matching's off), on or off for every generative model alike")
+    p.add_argument("--noise-scale", type=float_range(0.0, 4.0, lo_open=True), default=1.0,
+                   help="the samplers' starting noise (and DDPM's ancestral noise) times this, every generative model "
+                   "alike: a sampling temperature (1: the N(0, I) they were trained from)")
     p.add_argument("--max-steps", type=int_range(1, 100_000),
                    help="end each policy episode after this many steps instead of the environment's limit (Push-T "
                    "300, Franka Kitchen 280): does more time let a policy finish? (the references keep the limit)")

@@ -113,13 +113,13 @@ def test_state_only_policies_train_and_run_the_kitchen_benchmark(state_models: P
     table = (out / "t.md").read_text()
     assert details["max_steps"] == 12 and "at most 12 steps (the environment's limit is 280" in table
     assert "| fm_cnn | 2 | last |" in table and "microwave / kettle / light switch / slide cabinet" in table
-    # --clip-sample: the sampler's clipping set alike for every generative model, and named in its row
+    # --clip-sample and --noise-scale: set alike for every generative model, and named in its row
     run_module("benchmark", "--env", "kitchen", "--models", models / "fm_cnn", models / "dp_cnn",
-               "--steps", "2", "--clip-sample", "on", "--checkpoints", "last", "--episodes", "1",
-               "--max-steps", "4", "--metrics", out / "m2.json", "--details", out / "d2.json",
+               "--steps", "2", "--clip-sample", "on", "--noise-scale", "0.5", "--checkpoints", "last",
+               "--episodes", "1", "--max-steps", "4", "--metrics", out / "m2.json", "--details", out / "d2.json",
                "--table", out / "t2.md", check=True)
     rows = {r["model"] for r in json.loads((out / "d2.json").read_text())["results"]}
-    assert rows == {"fm_cnn (clipped)", "dp_cnn (clipped)"}
+    assert rows == {"fm_cnn (clipped) (noise 0.5)", "dp_cnn (clipped) (noise 0.5)"}
 
 
 def test_the_mechanism_measurement_reads_the_policies_own_windows(kitchen_data: Path, state_models: Path,
@@ -140,7 +140,8 @@ def test_the_mechanism_measurement_reads_the_policies_own_windows(kitchen_data: 
     assert [f["k"] for f in r["fit"]][0] == 0 and ts[0] > 0.9 and ts[-1] < 0.05 and ts == sorted(ts, reverse=True)
     assert sum(b["dp"] for b in r["training_share"]) == pytest.approx(1.0)
     rows = {(p["model"], p["steps"]): p["by_phase"]["all"] for p in r["plans"]}
-    assert set(rows) == {(m, s) for m in ("FM", "FM clipped", "DP", "DP unclipped") for s in (2, 16)}
+    models = ("FM", "FM clipped", "DP", "DP unclipped", "FM noise 0.5", "DP noise 0.5")
+    assert set(rows) == {(m, s) for m in models for s in (2, 16)}
     for steps in (2, 16):
         assert rows["FM clipped", steps]["outside"] == 0.0 and rows["DP", steps]["outside"] == 0.0
     assert "| FM clipped | 16 |" in (tmp_path / "m.md").read_text()

@@ -246,6 +246,25 @@ def test_flow_matching_clips_its_clean_estimate_only_when_asked(steps: int) -> N
     assert float(free.abs().max()) == pytest.approx(3.0) and float(held.abs().max()) == pytest.approx(1.0)
 
 
+def test_the_sampling_noise_scale_is_a_temperature_of_both_samplers() -> None:
+    """noise_scale (issue L3's lever, given to FM and DDPM alike): the starting noise times the scale, so a flow
+    that keeps x0 returns it scaled; DDPM's ancestral noise shrinks with it (its spread over draws of one plan)."""
+    zero = lambda x, t, c: torch.zeros_like(x)  # noqa: E731 - x stays x0
+    fm = FlowMatching("velocity")
+    fm.noise_scale = 0.5
+    x = fm.sample(zero, torch.zeros(1, 1), (1, 4096, 5), 1, "euler", torch.Generator().manual_seed(1))
+    assert abs(float(x.std()) - 0.5) < 0.03
+    mean = lambda x, t, c: 0.3 * x  # noqa: E731 - a clean estimate that follows its input
+    spread = {}
+    for scale in (1.0, 0.5):
+        ddpm = DDPM(prediction="sample", clip_sample=False)
+        ddpm.noise_scale = scale
+        draws = torch.stack([ddpm.sample(mean, torch.zeros(1, 1), (1, 256, 5), 16, "ddpm",
+                                         torch.Generator().manual_seed(k)) for k in range(8)])
+        spread[scale] = float(draws.std(0).mean())
+    assert spread[0.5] == pytest.approx(0.5 * spread[1.0], rel=0.05)
+
+
 def test_flow_matching_primitives() -> None:
     x0, x1 = torch.randn(4, 32, 5), torch.randn(4, 32, 5)
     t = torch.tensor([0.0, 0.25, 0.5, 0.9])

@@ -40,6 +40,7 @@ class BenchmarkConfig:
     steps: list[int] = field(default_factory=lambda: [2, 16])  # sampling steps of the generative models
     dp_sampler: str = "ddpm"
     clip_sample: str = "own"  # own (DDPM's clips, FM's does not), on, off: every generative model alike
+    noise_scale: float = 1.0  # the samplers' starting (and DDPM's ancestral) noise scale, every model alike
     max_steps: int | None = None  # None: the environment's limit
     checkpoints: list[str] = field(default_factory=lambda: ["best", "last"])
     episodes: int = 50
@@ -64,12 +65,14 @@ def _policy(path: str) -> tuple:
 def _episode(job: tuple) -> tuple[str, str | int, int, dict]:
     from ..policy.inference import predict
 
-    env, name, checkpoint, path, steps, method, seed, execute, max_steps, clip = job
+    env, name, checkpoint, path, steps, method, seed, execute, max_steps, clip, noise_scale = job
     torch.set_num_threads(1)
     placement = Placement()
     policy, ck = _policy(path)
     if clip != "own" and hasattr(policy.objective, "clip"):
         policy.objective.clip = clip == "on"
+    if hasattr(policy.objective, "noise_scale"):
+        policy.objective.noise_scale = noise_scale
     cfg, norm, gen = policy.cfg, Normalizer(ck["stats"]), placement.generator(seed)
     blank = np.zeros((cfg.image_size, cfg.image_size), np.float32)
     seconds: list[float] = []
@@ -90,6 +93,7 @@ def _episode(job: tuple) -> tuple[str, str | int, int, dict]:
                                                state_only=not cfg.use_image)
     label = name + (f" ({method})" if method not in (None, "ddpm") else "")
     label += {"on": " (clipped)", "off": " (unclipped)"}.get(clip, "") if hasattr(policy.objective, "clip") else ""
+    label += f" (noise {noise_scale:g})" if noise_scale != 1.0 and hasattr(policy.objective, "noise_scale") else ""
     return label, checkpoint, steps, {"seed": seed, **outcome, "ms": 1000.0 * float(np.median(seconds))}
 
 
@@ -168,11 +172,11 @@ def episode_jobs(c: BenchmarkConfig, bench: Benchmark) -> tuple[list[tuple], lis
         bc = cfg["model"].startswith("bc_")
         for steps in ([1] if bc else c.steps):
             jobs += [(c.env, name, ck, str(d / CHECKPOINTS[ck]), steps, method, c.seed + i, c.execute,
-                      c.max_steps, c.clip_sample) for ck in c.checkpoints for i in range(c.episodes)]
+                      c.max_steps, c.clip_sample, c.noise_scale) for ck in c.checkpoints for i in range(c.episodes)]
         if c.curve:
             steps = 1 if bc else c.curve_steps
             curve_jobs += [(c.env, name, n, str(path), steps, method, c.seed + i, c.execute,
-                            c.max_steps, c.clip_sample)
+                            c.max_steps, c.clip_sample, c.noise_scale)
                            for n, path in curve_checkpoints(d)
                            for i in range(c.curve_episodes or c.episodes)]  # checkpoint: its step
     return jobs, curve_jobs

@@ -78,6 +78,8 @@ class FlowMatching:
         # Diffusion Policy's clip_sample, FM's equivalent (x1 output only): the clean-trajectory estimate held in
         # the normalised range [-1, 1] at every step. Off by default (the paper's FM has none); DDPM's is on.
         self.clip = clip_sample
+        # The source's noise scale at test time (a sampling temperature; 1: the N(0, I) it was trained from).
+        self.noise_scale = 1.0
 
     def loss(self, net: Denoiser, x1: torch.Tensor, cond: torch.Tensor, noise: Noise) -> torch.Tensor:
         x0, t = noise.eps, noise.u[:, 0]
@@ -89,7 +91,7 @@ class FlowMatching:
                gen: torch.Generator | None = None) -> torch.Tensor:
         if method not in self.methods:
             raise ValueError(f"unknown flow-matching sampler {method!r}; use one of {self.methods}")
-        x = torch.randn(shape, generator=gen, device=cond.device)
+        x = self.noise_scale * torch.randn(shape, generator=gen, device=cond.device)
         dt = 1.0 / steps
         b = shape[0]
 
@@ -186,6 +188,7 @@ class DDPM:
         if prediction not in self.predictions:
             raise ValueError(f"unknown diffusion prediction {prediction!r}; use one of {self.predictions}")
         self.spacing, self.prediction = spacing, prediction
+        self.noise_scale = 1.0  # the starting and the ancestral noise's scale at test time (a sampling temperature)
         self.n = train_steps
         self.betas = squaredcos_cap_v2(train_steps)
         self.abar = torch.cumprod(1 - self.betas, 0)
@@ -213,7 +216,7 @@ class DDPM:
         if method not in self.methods:
             raise ValueError(f"unknown diffusion sampler {method!r}; use one of {self.methods}")
         method, _, spacing = method.partition("_")
-        x = torch.randn(shape, generator=gen, device=cond.device)
+        x = self.noise_scale * torch.randn(shape, generator=gen, device=cond.device)
         ts = self.timesteps(steps, spacing or None)
         abar = self.abar.tolist()
         for i, t in enumerate(ts):
@@ -234,7 +237,7 @@ class DDPM:
                 x = mean
                 if prev >= 0:
                     var = max((1 - a_prev) / (1 - a_t) * beta, 1e-20)
-                    x = x + math.sqrt(var) * torch.randn(shape, generator=gen, device=x.device)
+                    x = x + self.noise_scale * math.sqrt(var) * torch.randn(shape, generator=gen, device=x.device)
         return x
 
     @staticmethod

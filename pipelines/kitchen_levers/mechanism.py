@@ -11,7 +11,7 @@ are trained and run in (the 2-frame 59-D state, the normalised 16-step joint-vel
    Ta = 8 executed actions: the error of a sample, the error of the samples' mean (bias), their spread around
    it, and the share of values outside [-1, 1] (the range DDPM's sampler clips to, FM's does not); per sub-task
    phase (the first of the demonstrator's order not yet done at that frame) and over all. Also each with the other's
-   clipping: FM with its x1 estimate clipped, DP without.
+   clipping (FM with its x1 estimate clipped, DP without) and each with its noise at half scale (a temperature).
 
     python pipelines/kitchen_levers/mechanism.py models/fm_cnn_e30 models/dp_cnn_e30 \
         --data data/kitchen.h5 --split data/split.json --out results/mechanism_e30.json
@@ -103,17 +103,18 @@ def training_share(abar: torch.Tensor, edges: list[float]) -> list[dict]:
 
 @torch.no_grad()
 def plans(policy: Policy, obs: tuple, x1: torch.Tensor, steps: int, samples: int, seed: int,
-          clip: bool) -> dict[str, torch.Tensor]:
+          clip: bool, noise_scale: float = 1.0) -> dict[str, torch.Tensor]:
     """Per window: sample error, bias, spread (RMS over the executed actions, normalised units) and the share of
-    values outside [-1, 1], of `samples` plans at `steps` with the sampler's clipping set to `clip`."""
-    was = policy.objective.clip
-    policy.objective.clip = clip
+    values outside [-1, 1], of `samples` plans at `steps` with the sampler's clipping set to `clip` and its noise
+    scaled by `noise_scale`."""
+    was = policy.objective.clip, policy.objective.noise_scale
+    policy.objective.clip, policy.objective.noise_scale = clip, noise_scale
     try:
         cond = policy.condition(obs)
         gen = torch.Generator().manual_seed(seed)
         draws = torch.stack([policy.sample(cond, steps, None, gen)[:, :EXECUTED] for _ in range(samples)])
     finally:
-        policy.objective.clip = was
+        policy.objective.clip, policy.objective.noise_scale = was
     demo = x1[:, :EXECUTED]
     mean = draws.mean(0)
     return {"error": (draws - demo).pow(2).mean(dim=(2, 3)).mean(0).sqrt(),
@@ -176,9 +177,10 @@ def main() -> None:
               "training_share": training_share(dp.objective.abar.float(), [0, .1, .3, .5, .7, .9, 1.0]),
               "plans": []}
     for steps in (2, 16):
-        for name, pol, clip in (("FM", fm, False), ("FM clipped", fm, True), ("DP", dp, True),
-                                ("DP unclipped", dp, False)):
-            per = plans(pol, obs, x1, steps, a.samples, a.seed, clip)
+        for name, pol, clip, scale in (("FM", fm, False, 1.0), ("FM clipped", fm, True, 1.0), ("DP", dp, True, 1.0),
+                                       ("DP unclipped", dp, False, 1.0), ("FM noise 0.5", fm, False, 0.5),
+                                       ("DP noise 0.5", dp, True, 0.5)):
+            per = plans(pol, obs, x1, steps, a.samples, a.seed, clip, scale)
             result["plans"].append({"model": name, "steps": steps, "by_phase": summarise(per, phases)})
             print(f"{name:>13} {steps:>2}: " + "  ".join(f"{m} {v:.4f}" for m, v in
                                                           result["plans"][-1]["by_phase"]["all"].items()), flush=True)
