@@ -235,6 +235,15 @@ def _pixels(msg: object) -> np.ndarray:
     return np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.width, -1)
 
 
+def _depth(msg: object) -> np.ndarray:
+    """A 32FC1 depth image's metres (H, W), a writable copy."""
+    return np.frombuffer(bytes(msg.data), np.float32).reshape(msg.height, msg.width).copy()
+
+
+def _set_depth(msg: object, a: np.ndarray) -> None:
+    msg.data = np.frombuffer(np.ascontiguousarray(a, np.float32).tobytes(), np.uint8)
+
+
 def bgr_as_rgb(messages: list[Message]) -> list[Message]:
     """A driver publishing BGR bytes under the rgb8 encoding."""
     for msg in _of(messages):

@@ -22,8 +22,10 @@ from plant_defects import (
     TF,
     TF_STATIC,
     Message,
+    _depth,
     _of,
     _pixels,
+    _set_depth,
     read,
     stamp_ns,
     write,
@@ -100,8 +102,7 @@ def shaking_camera(messages: list[Message]) -> list[Message]:
     for c, d in zip(colour, depth, strict=False):
         dx, dy = rng.integers(-4, 5, 2)
         c.data = np.ascontiguousarray(np.roll(_pixels(c), (dy, dx), axis=(0, 1))).ravel()
-        a = np.frombuffer(bytes(d.data), np.float32).reshape(d.height, d.width)
-        d.data = np.frombuffer(np.ascontiguousarray(np.roll(a, (dy, dx), axis=(0, 1))).tobytes(), np.uint8)
+        _set_depth(d, np.roll(_depth(d), (dy, dx), axis=(0, 1)))
     return messages
 
 
@@ -147,10 +148,10 @@ def depth_holes(messages: list[Message]) -> list[Message]:
     """realsenseai/librealsense#2880 and #4320: depth reads 0 over a reflective region (here the middle 40 % x 40 % of
     every depth image)."""
     for msg in _of(messages, (DEPTH,)):
-        a = np.frombuffer(bytes(msg.data), np.float32).reshape(msg.height, msg.width).copy()
+        a = _depth(msg)
         h, w = a.shape
         a[int(0.3 * h):int(0.7 * h), int(0.3 * w):int(0.7 * w)] = 0.0
-        msg.data = np.frombuffer(a.tobytes(), np.uint8)
+        _set_depth(msg, a)
     return messages
 
 

@@ -18,8 +18,10 @@ from plant_defects import (
     JOINTS,
     TF,
     Message,
+    _depth,
     _of,
     _pixels,
+    _set_depth,
     _shift,
     read,
     stamp_ns,
@@ -29,14 +31,6 @@ from plant_heldout import EE_FRAME, _set_stamp
 
 ACTION = "/arm/tcp_command"  # the recorder's command: tcp x, y, z and the gripper
 GRIPPER = "finger_left"
-
-
-def _depth(msg: object) -> np.ndarray:
-    return np.frombuffer(bytes(msg.data), np.float32).reshape(msg.height, msg.width).copy()
-
-
-def _set_depth(msg: object, a: np.ndarray) -> None:
-    msg.data = np.frombuffer(np.ascontiguousarray(a, np.float32).tobytes(), np.uint8)
 
 
 def image_upside_down(messages: list[Message]) -> list[Message]:

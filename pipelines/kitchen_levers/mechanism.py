@@ -27,13 +27,13 @@ from pathlib import Path
 import numpy as np
 import torch
 from gymnasium_robotics.envs.franka_kitchen.kitchen_env import BONUS_THRESH, OBS_ELEMENT_GOALS, OBS_ELEMENT_INDICES
+from phases import ORDER  # the demonstrator's order of the sub-tasks (this folder's phases.py)
 
 from adlpipe.dataset.loader import WindowDataset, Windows
 from adlpipe.policy.checkpoint import load_policy
-from adlpipe.policy.models import Policy
+from adlpipe.policy.models import ModelConfig, Policy
 from adlpipe.training.data import collate_obs
 
-ORDER = ("microwave", "light switch", "slide cabinet", "kettle")  # the demonstrator's
 QPOS_IN_OBS = 9  # the 59-D observation is robot qpos (9), qvel (9), object qpos, qvel: qpos index i is at i + 9
 DDPM_STEPS = (0, 5, 10, 20, 30, 40, 50, 60, 70, 80, 90, 99)
 EXECUTED = 8  # Ta
@@ -56,10 +56,12 @@ def phase(done: dict[str, int], k: int) -> str:
     return next((task for task in ORDER if done[task] > k), "all done")
 
 
-def test_windows(data: Path, names: list[str], stats: dict, per_episode: int) -> tuple[tuple, torch.Tensor, list]:
-    """(observation, normalised demonstrated chunk (N, 16, 9), phase per window) of `per_episode` evenly spaced
-    frames of each test episode."""
-    ds = WindowDataset(data, names, stats, 32, Windows(2, 16, 10.0, "action", False), frames_per_episode=per_episode)
+def test_windows(data: Path, names: list[str], stats: dict, cfg: ModelConfig,
+                 per_episode: int) -> tuple[tuple, torch.Tensor, list]:
+    """(observation, normalised demonstrated chunk (N, horizon, action_dim), phase per window) of `per_episode`
+    evenly spaced frames of each test episode, windowed as the model was trained (its config)."""
+    windows = Windows(cfg.n_obs, cfg.horizon, cfg.rate_hz, cfg.target, cfg.use_image)
+    ds = WindowDataset(data, names, stats, cfg.image_size, windows, frames_per_episode=per_episode)
     items = [ds[i] for i in range(len(ds))]
     done = {e: done_at(ds.episode_meta(e)["state"]) for e in {e for e, _ in ds.items}}
     phases = [phase(done[e], k) for e, k in ds.items]
@@ -170,7 +172,9 @@ def main() -> None:
     if fm.family != "fm" or dp.family != "ddpm" or dp.objective.prediction != "sample":
         raise SystemExit("mechanism.py: needs an FM model (x1 output) and a clean-sample DP model")
     names = json.loads(a.split.read_text())["test"]
-    obs, x1, phases = test_windows(a.data, names, ck["stats"], a.frames)
+    if fm.cfg.to_dict() | {"model": ""} != dp.cfg.to_dict() | {"model": ""}:
+        raise SystemExit("mechanism.py: the two models differ in more than their objective (config)")
+    obs, x1, phases = test_windows(a.data, names, ck["stats"], fm.cfg, a.frames)
     result = {"fm": str(a.fm), "dp": str(a.dp), "windows": len(x1), "episodes": len(names),
               "samples": a.samples, "phases": {q: phases.count(q) for q in (*ORDER, "all done")},
               "fit": fit_by_noise(fm, dp, obs, x1, a.seed),
